@@ -1,0 +1,39 @@
+"""torchrl-rave: Risk Averse Value Expansion (RAVE), MVE and STEVE as TorchRL components.
+
+The public pieces:
+
+- :class:`~torchrl_rave.modules.WorldModelEnsemble`: probabilistic transition, reward and
+  termination ensembles, all members in one batched call.
+- :class:`~torchrl_rave.objectives.WorldModelLoss`: Gaussian NLL / cross-entropy with
+  independent bootstrap resamples per member.
+- :class:`~torchrl_rave.objectives.RAVEValueEstimator`, :class:`~torchrl_rave.objectives.STEVEEstimator`,
+  :class:`~torchrl_rave.objectives.MVEEstimator`: TorchRL value estimators for any
+  DDPG/TD3-style loss.
+- :class:`~torchrl_rave.transforms.AdaptiveAlpha`: the per-sample confidence factor of eq. 12.
+"""
+
+from torchrl_rave._compat import patch_value_estimator_setter
+
+patch_value_estimator_setter()
+
+from torchrl_rave.modules import WorldModelEnsemble  # noqa: E402
+from torchrl_rave.objectives import (  # noqa: E402
+    MVEEstimator,
+    RAVEValueEstimator,
+    STEVEEstimator,
+    ValueExpansionEstimator,
+    WorldModelLoss,
+    make_value_expansion_estimator,
+)
+
+__version__ = "0.1.0"
+
+__all__ = [
+    "WorldModelEnsemble",
+    "WorldModelLoss",
+    "ValueExpansionEstimator",
+    "MVEEstimator",
+    "STEVEEstimator",
+    "RAVEValueEstimator",
+    "make_value_expansion_estimator",
+]

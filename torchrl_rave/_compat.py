@@ -1,0 +1,49 @@
+"""Compatibility fixes for the pinned TorchRL release.
+
+``loss.value_estimator = estimator`` is documented TorchRL API, but ``nn.Module.__setattr__``
+registers any module value as a submodule before Python looks at the ``value_estimator``
+property setter. In torchrl 0.14.x the estimator therefore lands in ``loss._modules``
+under ``"value_estimator"``, the getter still finds ``_value_estimator is None`` and
+silently builds the default TD(0) estimator. We route that one assignment through the
+property setter; everything else is left to the original ``__setattr__``.
+"""
+
+from __future__ import annotations
+
+import torch
+from torchrl.objectives import LossModule
+from torchrl.objectives.value import ValueEstimatorBase
+
+
+def _setter_is_bypassed() -> bool:
+    class _Probe(LossModule):
+        pass
+
+    class _Estimator(ValueEstimatorBase):
+        def forward(self, tensordict, **kwargs):
+            return tensordict
+
+    loss = _Probe()
+    estimator = _Estimator(value_network=None)
+    with torch.no_grad():
+        loss.value_estimator = estimator
+    return loss.__dict__.get("_value_estimator", None) is not estimator and (
+        loss._modules.get("_value_estimator", None) is not estimator
+    )
+
+
+def patch_value_estimator_setter() -> bool:
+    """Makes ``loss.value_estimator = est`` install ``est``; returns whether a patch was needed."""
+    if getattr(LossModule, "_rave_setter_patched", False) or not _setter_is_bypassed():
+        return False
+    original = LossModule.__setattr__
+
+    def __setattr__(self, name, value):
+        if name == "value_estimator" and isinstance(value, ValueEstimatorBase):
+            LossModule.value_estimator.fset(self, value)
+            return
+        original(self, name, value)
+
+    LossModule.__setattr__ = __setattr__
+    LossModule._rave_setter_patched = True
+    return True

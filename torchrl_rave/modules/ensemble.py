@@ -1,0 +1,194 @@
+"""Ensemble layers: N independent networks evaluated in one batched matmul.
+
+Every layer keeps its members' parameters stacked along a leading ensemble
+dimension, so one call evaluates all members at once (``torch.baddbmm``), with
+no Python loop over members. Inputs come in two layouts:
+
+- *shared*: ``[M, F]``, the same rows for every member; the output is ``[N, M, F']``.
+- *per member*: ``[N, M, F]``, member ``i`` reads row block ``i``; the output is
+  ``[N, M, F']``.
+
+Callers flatten any batch dimensions into ``M`` first.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+
+import torch
+from torch import nn
+from torch.nn import functional as F
+
+
+def _check_layout(x: torch.Tensor, num_members: int, in_features: int, per_member: bool) -> None:
+    if x.shape[-1] != in_features:
+        raise ValueError(
+            f"ensemble layer expects {in_features} input features, got a tensor of shape "
+            f"{tuple(x.shape)}"
+        )
+    if per_member and (x.dim() != 3 or x.shape[0] != num_members):
+        raise ValueError(
+            f"per-member input must have shape [{num_members}, M, {in_features}], "
+            f"got {tuple(x.shape)}"
+        )
+    if not per_member and x.dim() != 2:
+        raise ValueError(f"shared input must have shape [M, {in_features}], got {tuple(x.shape)}")
+
+
+class EnsembleLinear(nn.Module):
+    """``N`` independent affine maps with stacked parameters.
+
+    Args:
+        num_members (int): ensemble size ``N``.
+        in_features (int): input size.
+        out_features (int): output size.
+
+    Shapes:
+        ``weight``: ``[N, in_features, out_features]``; ``bias``: ``[N, 1, out_features]``.
+        Input ``[M, in]`` (shared) or ``[N, M, in]`` (per member); output ``[N, M, out]``.
+
+    Examples:
+        >>> layer = EnsembleLinear(3, 4, 2)
+        >>> layer(torch.randn(5, 4)).shape
+        torch.Size([3, 5, 2])
+        >>> layer(torch.randn(3, 5, 4), per_member=True).shape
+        torch.Size([3, 5, 2])
+    """
+
+    def __init__(self, num_members: int, in_features: int, out_features: int) -> None:
+        super().__init__()
+        self.num_members = num_members
+        self.in_features = in_features
+        self.out_features = out_features
+        self.weight = nn.Parameter(torch.empty(num_members, in_features, out_features))
+        self.bias = nn.Parameter(torch.empty(num_members, 1, out_features))
+        self.reset_parameters()
+
+    def reset_parameters(self) -> None:
+        # Same distribution as nn.Linear's default, drawn independently per member
+        # so that members start apart.
+        bound = 1.0 / math.sqrt(self.in_features)
+        nn.init.uniform_(self.weight, -bound, bound)
+        nn.init.uniform_(self.bias, -bound, bound)
+
+    def forward(self, x: torch.Tensor, per_member: bool = False) -> torch.Tensor:
+        if per_member:
+            return torch.baddbmm(self.bias, x, self.weight)
+        # [M, in] @ [N, in, out] broadcasts to [N, M, out] in one kernel.
+        return torch.matmul(x, self.weight) + self.bias
+
+    def extra_repr(self) -> str:
+        return f"num_members={self.num_members}, in_features={self.in_features}, out_features={self.out_features}"
+
+
+class EnsembleMLP(nn.Module):
+    """A stack of :class:`EnsembleLinear` layers with an activation between them.
+
+    Args:
+        num_members (int): ensemble size ``N``.
+        in_features (int): input size.
+        out_features (int): output size of the last layer.
+        num_cells (Sequence[int]): hidden widths; ``len(num_cells) + 1`` FC layers in all.
+        activation (type[nn.Module]): activation class placed after every hidden layer.
+
+    Examples:
+        >>> mlp = EnsembleMLP(4, 3, 2, num_cells=[16, 16])
+        >>> mlp(torch.randn(10, 3)).shape
+        torch.Size([4, 10, 2])
+    """
+
+    def __init__(
+        self,
+        num_members: int,
+        in_features: int,
+        out_features: int,
+        num_cells: Sequence[int],
+        activation: type[nn.Module] = nn.ReLU,
+    ) -> None:
+        super().__init__()
+        self.num_members = num_members
+        self.in_features = in_features
+        sizes = [in_features, *num_cells, out_features]
+        self.layers = nn.ModuleList(
+            EnsembleLinear(num_members, fan_in, fan_out)
+            for fan_in, fan_out in zip(sizes[:-1], sizes[1:])
+        )
+        self.activation = activation()
+
+    def forward(self, x: torch.Tensor, per_member: bool = False) -> torch.Tensor:
+        _check_layout(x, self.num_members, self.in_features, per_member)
+        for n, layer in enumerate(self.layers):
+            # after the first layer every member has its own rows
+            x = layer(x, per_member=per_member or n > 0)
+            if n < len(self.layers) - 1:
+                x = self.activation(x)
+        return x
+
+
+class GaussianEnsembleMLP(nn.Module):
+    """Ensemble MLP with a mean head and a soft-bounded log-variance head.
+
+    The trunk has ``len(num_cells)`` hidden layers; the mean and log-variance are two
+    output layers on top of it (paper appendix A: "two output layers corresponding to
+    the mean and the variances"). The log-variance is squashed between learned per-member
+    bounds with softplus, so it cannot run to +-inf off-distribution:
+
+    ``logvar = max - softplus(max - raw)``, then ``logvar = min + softplus(logvar - min)``.
+
+    The bounds are parameters; :meth:`bound_penalty` is the small regulariser that keeps
+    them tight (add it to the loss).
+
+    Args:
+        num_members (int): ensemble size ``N``.
+        in_features (int): input size.
+        out_features (int): size of the predicted Gaussian.
+        num_cells (Sequence[int]): hidden widths of the trunk.
+        activation (type[nn.Module]): hidden activation.
+        init_max_logvar (float): initial upper bound of the log-variance.
+        init_min_logvar (float): initial lower bound of the log-variance.
+
+    Examples:
+        >>> head = GaussianEnsembleMLP(4, 3, 2, num_cells=[16])
+        >>> mean, logvar = head(torch.randn(10, 3))
+        >>> mean.shape, logvar.shape
+        (torch.Size([4, 10, 2]), torch.Size([4, 10, 2]))
+        >>> bool((logvar <= head.max_logvar).all() and (logvar >= head.min_logvar).all())
+        True
+    """
+
+    def __init__(
+        self,
+        num_members: int,
+        in_features: int,
+        out_features: int,
+        num_cells: Sequence[int],
+        activation: type[nn.Module] = nn.ReLU,
+        init_max_logvar: float = 0.5,
+        init_min_logvar: float = -10.0,
+    ) -> None:
+        super().__init__()
+        if len(num_cells) == 0:
+            raise ValueError("a Gaussian ensemble needs at least one hidden layer")
+        self.trunk = EnsembleMLP(
+            num_members, in_features, num_cells[-1], num_cells[:-1], activation
+        )
+        self.activation = activation()
+        self.mean_head = EnsembleLinear(num_members, num_cells[-1], out_features)
+        self.logvar_head = EnsembleLinear(num_members, num_cells[-1], out_features)
+        self.max_logvar = nn.Parameter(torch.full((num_members, 1, out_features), init_max_logvar))
+        self.min_logvar = nn.Parameter(torch.full((num_members, 1, out_features), init_min_logvar))
+
+    def forward(
+        self, x: torch.Tensor, per_member: bool = False
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        h = self.activation(self.trunk(x, per_member=per_member))
+        mean = self.mean_head(h, per_member=True)
+        raw = self.logvar_head(h, per_member=True)
+        logvar = self.max_logvar - F.softplus(self.max_logvar - raw)
+        logvar = self.min_logvar + F.softplus(logvar - self.min_logvar)
+        return mean, logvar
+
+    def bound_penalty(self) -> torch.Tensor:
+        """``sum(max_logvar) - sum(min_logvar)``: pulls the learned bounds together."""
+        return self.max_logvar.sum() - self.min_logvar.sum()

@@ -1,0 +1,368 @@
+"""Probabilistic world-model ensemble: transition, reward and termination members."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import torch
+from tensordict import TensorDict, TensorDictBase
+from tensordict.nn import InteractionType, TensorDictModuleBase
+from tensordict.nn.probabilistic import interaction_type
+from tensordict.utils import NestedKey
+from torch import nn
+
+from torchrl_rave.modules.ensemble import EnsembleMLP, GaussianEnsembleMLP
+from torchrl_rave.modules.normalizer import RunningNormalizer
+
+__all__ = ["WorldModelEnsemble"]
+
+
+def _cells(width: int | Sequence[int], num_layers: int, name: str) -> list[int]:
+    """Hidden widths for a network of ``num_layers`` FC layers (output layer included)."""
+    if isinstance(width, int):
+        if num_layers < 2:
+            raise ValueError(f"{name}_layers must be >= 2 (hidden + output), got {num_layers}")
+        if width < 1:
+            raise ValueError(f"{name}_cells must be >= 1, got {width}")
+        return [width] * (num_layers - 1)
+    cells = list(width)
+    if not cells or min(cells) < 1:
+        raise ValueError(f"{name}_cells must be a non-empty list of positive widths, got {cells}")
+    return cells
+
+
+class WorldModelEnsemble(TensorDictModuleBase):
+    """An ensemble of ``N`` probabilistic environment models (paper section 3.2 and 5.1).
+
+    Member ``i`` has a transition model ``f_s,i`` and a termination model ``f_d,i`` (bound
+    to the same index, appendix "Rollout Details"); the ``N`` reward models ``f_r,j`` are
+    a separate ensemble. All members of a kind are evaluated in one batched-matmul call.
+
+    - Transition: ``(s, a) -> N(mean, var)`` of the *normalised* change ``(s' - s - mu) / sigma``.
+    - Reward: ``(s, a, s') -> N(mean, var)`` of the normalised reward.
+    - Termination: ``s' -> p(done)`` through a sigmoid.
+
+    Inputs are normalised with running statistics kept as buffers
+    (:meth:`update_normalizers`), so they are saved in ``state_dict``.
+
+    Modes: with ``sample=False`` (or under ``set_interaction_type("deterministic")``)
+    every member returns its Gaussian mean; with ``sample=True`` (or
+    ``set_interaction_type("random")``) each member draws from its own Gaussian.
+
+    Tensor layouts of the hot-path methods (:meth:`step`, :meth:`reward`,
+    :meth:`termination_prob`): inputs ``[*B, F]`` are shared by all members, inputs
+    ``[N, *B, F]`` with ``per_member=True`` give member ``i`` the slice ``i``; outputs
+    are always ``[N, *B, F']``.
+
+    Default sizes follow the paper's depths (appendix A: 8 FC layers for the transition
+    model, 4 for reward and termination) and the widths of STEVE's released configuration
+    (512 for the transition model, 128 for reward and termination), which the paper does
+    not state.
+
+    Args:
+        observation_dim (int): size of the observation vector ``S``.
+        action_dim (int): size of the action vector ``A``.
+
+    Keyword Args:
+        num_models (int): ensemble size ``N``. Defaults to 4.
+        transition_cells (int or Sequence[int]): width of the transition model, or its
+            list of hidden widths. Defaults to 512.
+        transition_layers (int): FC layers of the transition model including the output
+            layer (ignored when ``transition_cells`` is a list). Defaults to 8.
+        reward_cells, reward_layers: same for the reward model. Defaults to 128, 4.
+        termination_cells, termination_layers: same for the termination model.
+            Defaults to 128, 4.
+        activation (type[nn.Module]): hidden activation. Defaults to ReLU.
+        observation_key (NestedKey): observation entry for :meth:`forward`.
+        action_key (NestedKey): action entry for :meth:`forward`.
+
+    Examples:
+        >>> wm = WorldModelEnsemble(3, 1, num_models=4, transition_cells=16, reward_cells=16,
+        ...                         termination_cells=16)
+        >>> obs, act = torch.randn(5, 3), torch.rand(5, 1)
+        >>> wm.step(obs, act, sample=False).shape        # every member from the same input
+        torch.Size([4, 5, 3])
+        >>> nxt = wm.step(obs, act, sample=True)
+        >>> wm.step(nxt, act.expand(4, 5, 1), sample=True, per_member=True).shape
+        torch.Size([4, 5, 3])
+        >>> wm.reward(obs, act, obs, sample=False).shape
+        torch.Size([4, 5, 1])
+        >>> td = wm(TensorDict(observation=obs, action=act, batch_size=[5]))
+        >>> td
+        TensorDict(
+            fields={
+                action: Tensor(shape=torch.Size([4, 5, 1]), device=cpu, dtype=torch.float32, is_shared=False),
+                next: TensorDict(
+                    fields={
+                        observation: Tensor(shape=torch.Size([4, 5, 3]), device=cpu, dtype=torch.float32, is_shared=False),
+                        reward: Tensor(shape=torch.Size([4, 5, 1]), device=cpu, dtype=torch.float32, is_shared=False),
+                        termination_prob: Tensor(shape=torch.Size([4, 5, 1]), device=cpu, dtype=torch.float32, is_shared=False)},
+                    batch_size=torch.Size([4, 5]),
+                    device=None,
+                    is_shared=False),
+                observation: Tensor(shape=torch.Size([4, 5, 3]), device=cpu, dtype=torch.float32, is_shared=False)},
+            batch_size=torch.Size([4, 5]),
+            device=None,
+            is_shared=False)
+    """
+
+    default_interaction_type = InteractionType.DETERMINISTIC
+
+    def __init__(
+        self,
+        observation_dim: int,
+        action_dim: int,
+        *,
+        num_models: int = 4,
+        transition_cells: int | Sequence[int] = 512,
+        transition_layers: int = 8,
+        reward_cells: int | Sequence[int] = 128,
+        reward_layers: int = 4,
+        termination_cells: int | Sequence[int] = 128,
+        termination_layers: int = 4,
+        activation: type[nn.Module] = nn.ReLU,
+        observation_key: NestedKey = "observation",
+        action_key: NestedKey = "action",
+    ) -> None:
+        super().__init__()
+        for name, value in (
+            ("num_models", num_models),
+            ("observation_dim", observation_dim),
+            ("action_dim", action_dim),
+        ):
+            if not isinstance(value, int) or isinstance(value, bool) or value < 1:
+                raise ValueError(f"{name} must be a positive integer, got {value!r}")
+        self.num_models = num_models
+        self.observation_dim = observation_dim
+        self.action_dim = action_dim
+        S, A = observation_dim, action_dim
+        self.transition = GaussianEnsembleMLP(
+            num_models, S + A, S, _cells(transition_cells, transition_layers, "transition"), activation
+        )
+        self.reward_model = GaussianEnsembleMLP(
+            num_models, 2 * S + A, 1, _cells(reward_cells, reward_layers, "reward"), activation
+        )
+        self.termination = EnsembleMLP(
+            num_models, S, 1, _cells(termination_cells, termination_layers, "termination"), activation
+        )
+        self.obs_norm = RunningNormalizer(S)
+        self.action_norm = RunningNormalizer(A)
+        self.delta_norm = RunningNormalizer(S)
+        self.reward_norm = RunningNormalizer(1)
+        self.observation_key = observation_key
+        self.action_key = action_key
+        self.in_keys = [observation_key, action_key]
+        self.out_keys = [
+            ("next", observation_key),
+            ("next", "reward"),
+            ("next", "termination_prob"),
+        ]
+
+    @classmethod
+    def from_specs(
+        cls,
+        observation_spec,
+        action_spec,
+        *,
+        observation_key: NestedKey = "observation",
+        **kwargs,
+    ) -> WorldModelEnsemble:
+        """Builds the ensemble from TorchRL specs (e.g. ``env.observation_spec``, ``env.action_spec``).
+
+        ``observation_spec`` may be a ``Composite`` holding ``observation_key`` or the leaf
+        spec itself.
+
+        Examples:
+            >>> from torchrl.data import Bounded, Composite, Unbounded
+            >>> obs_spec = Composite(observation=Unbounded(shape=(11,)))
+            >>> wm = WorldModelEnsemble.from_specs(obs_spec, Bounded(-1, 1, shape=(3,)),
+            ...                                    transition_cells=8, reward_cells=8,
+            ...                                    termination_cells=8)
+            >>> wm.observation_dim, wm.action_dim, wm.num_models
+            (11, 3, 4)
+        """
+        from torchrl.data import Composite
+
+        if isinstance(observation_spec, Composite):
+            if observation_key not in observation_spec.keys(True, True):
+                raise ValueError(
+                    f"observation_key {observation_key!r} is not in the observation spec; "
+                    f"it has {list(observation_spec.keys(True, True))}"
+                )
+            observation_spec = observation_spec[observation_key]
+        if isinstance(action_spec, Composite):
+            action_spec = action_spec[kwargs.get("action_key", "action")]
+        return cls(
+            int(observation_spec.shape[-1]),
+            int(action_spec.shape[-1]),
+            observation_key=observation_key,
+            **kwargs,
+        )
+
+    # ----------------------------------------------------------------- inputs
+    def _flatten(self, x: torch.Tensor, per_member: bool, name: str, size: int):
+        if x.shape[-1] != size:
+            raise ValueError(
+                f"world model expects {name} of size {size} in the last dimension, "
+                f"got shape {tuple(x.shape)}"
+            )
+        if per_member:
+            if x.dim() < 2 or x.shape[0] != self.num_models:
+                raise ValueError(
+                    f"per-member {name} must lead with the ensemble size {self.num_models}, "
+                    f"got shape {tuple(x.shape)}"
+                )
+            return x.reshape(self.num_models, -1, size), x.shape[1:-1]
+        return x.reshape(-1, size), x.shape[:-1]
+
+    def _unflatten(self, y: torch.Tensor, batch_shape: torch.Size) -> torch.Tensor:
+        return y.reshape(self.num_models, *batch_shape, y.shape[-1])
+
+    def _sa_input(self, obs, action, per_member):
+        obs, batch = self._flatten(obs, per_member, "observation", self.observation_dim)
+        action, _ = self._flatten(action, per_member, "action", self.action_dim)
+        return torch.cat([self.obs_norm.normalize(obs), self.action_norm.normalize(action)], -1), batch
+
+    # ------------------------------------------------------------- transition
+    def predict_transition(
+        self, obs: torch.Tensor, action: torch.Tensor, *, per_member: bool = False
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """Mean and log-variance of the normalised state change, each ``[N, *B, S]``."""
+        x, batch = self._sa_input(obs, action, per_member)
+        mean, logvar = self.transition(x, per_member=per_member)
+        return self._unflatten(mean, batch), self._unflatten(logvar, batch)
+
+    def step(
+        self,
+        obs: torch.Tensor,
+        action: torch.Tensor,
+        *,
+        sample: bool,
+        per_member: bool = False,
+    ) -> torch.Tensor:
+        """Next observation of every member, ``[N, *B, S]``, in raw (unnormalised) units.
+
+        With ``sample=True`` member ``i`` draws ``s' ~ N(mean_i, var_i)`` (paper eq. 8);
+        otherwise it returns its mean.
+        """
+        mean, logvar = self.predict_transition(obs, action, per_member=per_member)
+        if sample:
+            mean = mean + torch.randn_like(mean) * (0.5 * logvar).exp()
+        return obs + self.delta_norm.denormalize(mean)
+
+    def target_delta(self, obs: torch.Tensor, next_obs: torch.Tensor) -> torch.Tensor:
+        """The transition model's regression target: the normalised state change."""
+        return self.delta_norm.normalize(next_obs - obs)
+
+    def mean_prediction_error(
+        self, obs: torch.Tensor, action: torch.Tensor, next_obs: torch.Tensor
+    ) -> torch.Tensor:
+        """``||mean_i f_s,i(s, a) - s'||^2`` in normalised units (paper eq. 12), shape ``[*B]``."""
+        mean, _ = self.predict_transition(obs, action)
+        return (mean.mean(0) - self.target_delta(obs, next_obs)).pow(2).sum(-1)
+
+    # ----------------------------------------------------------------- reward
+    def predict_reward(
+        self,
+        obs: torch.Tensor,
+        action: torch.Tensor,
+        next_obs: torch.Tensor,
+        *,
+        per_member: bool = False,
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """Mean and log-variance of the normalised reward, each ``[N, *B, 1]``."""
+        x, batch = self._sa_input(obs, action, per_member)
+        nxt, _ = self._flatten(next_obs, per_member, "next observation", self.observation_dim)
+        x = torch.cat([x, self.obs_norm.normalize(nxt)], -1)
+        mean, logvar = self.reward_model(x, per_member=per_member)
+        return self._unflatten(mean, batch), self._unflatten(logvar, batch)
+
+    def reward(
+        self,
+        obs: torch.Tensor,
+        action: torch.Tensor,
+        next_obs: torch.Tensor,
+        *,
+        sample: bool,
+        per_member: bool = False,
+    ) -> torch.Tensor:
+        """Reward of every reward member, ``[N, *B, 1]``, in raw units (sampled or mean)."""
+        mean, logvar = self.predict_reward(obs, action, next_obs, per_member=per_member)
+        if sample:
+            mean = mean + torch.randn_like(mean) * (0.5 * logvar).exp()
+        return self.reward_norm.denormalize(mean)
+
+    # ------------------------------------------------------------ termination
+    def termination_logits(self, next_obs: torch.Tensor, *, per_member: bool = False) -> torch.Tensor:
+        """Logit of ``p(terminated | s')`` for every member, ``[N, *B, 1]``."""
+        x, batch = self._flatten(next_obs, per_member, "next observation", self.observation_dim)
+        return self._unflatten(self.termination(self.obs_norm.normalize(x), per_member=per_member), batch)
+
+    def termination_prob(self, next_obs: torch.Tensor, *, per_member: bool = False) -> torch.Tensor:
+        """``p(terminated | s')`` for every member, ``[N, *B, 1]``."""
+        return torch.sigmoid(self.termination_logits(next_obs, per_member=per_member))
+
+    # ----------------------------------------------------------- normalisers
+    @torch.no_grad()
+    def update_normalizers(
+        self,
+        obs: torch.Tensor,
+        action: torch.Tensor,
+        next_obs: torch.Tensor,
+        reward: torch.Tensor,
+    ) -> None:
+        """Merges a batch of real transitions into the input and target statistics.
+
+        Call it on every batch that enters the replay buffer (or on the whole buffer).
+        """
+        self.obs_norm.update(obs)
+        self.action_norm.update(action)
+        self.delta_norm.update(next_obs - obs)
+        self.reward_norm.update(reward.reshape(-1, 1))
+
+    def update_normalizers_from(
+        self,
+        tensordict: TensorDictBase,
+        reward_key: NestedKey = ("next", "reward"),
+    ) -> None:
+        """Same as :meth:`update_normalizers`, reading a TorchRL transition batch."""
+        self.update_normalizers(
+            tensordict.get(self.observation_key),
+            tensordict.get(self.action_key),
+            tensordict.get(("next", self.observation_key)),
+            tensordict.get(reward_key),
+        )
+
+    # ------------------------------------------------------------- tensordict
+    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
+        """One imagined step of every member ``i`` (transition ``i``, reward ``i``, termination ``i``).
+
+        Reads ``observation_key`` and ``action_key`` with batch ``[*B]`` and returns a new
+        TensorDict of batch ``[N, *B]`` (the ensemble dimension leading, as in
+        ``tensordict.nn.EnsembleModule``). Sampled under ``interaction_type() == RANDOM``,
+        means otherwise.
+        """
+        mode = interaction_type() or self.default_interaction_type
+        sample = mode == InteractionType.RANDOM
+        obs = tensordict.get(self.observation_key)
+        action = tensordict.get(self.action_key)
+        next_obs = self.step(obs, action, sample=sample)
+        N = self.num_models
+        obs_n = obs.expand(N, *obs.shape)
+        act_n = action.expand(N, *action.shape)
+        reward = self.reward(obs_n, act_n, next_obs, sample=sample, per_member=True)
+        done_p = self.termination_prob(next_obs, per_member=True)
+        out = TensorDict(batch_size=[N, *tensordict.batch_size])
+        out.set(self.observation_key, obs_n)
+        out.set(self.action_key, act_n)
+        out.set(("next", self.observation_key), next_obs)
+        out.set(("next", "reward"), reward)
+        out.set(("next", "termination_prob"), done_p)
+        return out
+
+    def extra_repr(self) -> str:
+        return (
+            f"num_models={self.num_models}, observation_dim={self.observation_dim}, "
+            f"action_dim={self.action_dim}"
+        )
+

@@ -1,0 +1,22 @@
+"""Losses and value estimators: world-model NLL, MVE / STEVE / RAVE targets."""
+
+from torchrl_rave.objectives import functional
+from torchrl_rave.objectives.value_expansion import (
+    MVEEstimator,
+    RAVEValueEstimator,
+    STEVEEstimator,
+    ValueExpansionEstimator,
+    make_value_expansion_estimator,
+)
+from torchrl_rave.objectives.world_model_loss import WorldModelLoss, gaussian_nll
+
+__all__ = [
+    "functional",
+    "MVEEstimator",
+    "RAVEValueEstimator",
+    "STEVEEstimator",
+    "ValueExpansionEstimator",
+    "WorldModelLoss",
+    "gaussian_nll",
+    "make_value_expansion_estimator",
+]

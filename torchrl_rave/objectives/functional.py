@@ -1,0 +1,261 @@
+"""Value-expansion math as pure tensor functions (MVE, STEVE, RAVE).
+
+Notation follows the paper (Zhou et al., "Efficient and Robust Reinforcement Learning
+with Uncertainty-based Value Expansion"): transition members ``i`` (with their
+termination models), reward members ``j``, target critics ``k``, horizon
+``H = 0..H_max``. Layouts:
+
+- ``continuation``: ``[Ni, *B, H_max + 1]``; entry ``h`` is ``c_{t,t+h+1}``.
+- ``imagined_rewards``: ``[Ni, Nj, *B, H_max]``; entry ``h`` is ``r~_{t+h+1}(i, j)``.
+- ``values``: ``[Ni, K, *B, H_max + 1]``; entry ``H`` is ``Q'_k(s~_{t+H+1}, a~_{t+H+1})``
+  on member ``i``'s trajectory.
+- candidates: ``[Ni, Nj, K, *B, H_max + 1]``.
+
+Nothing here calls a network: the estimator computes the O(N H) transition, O(N^2 H)
+reward and O(N K H) critic evaluations and these functions combine them by broadcasting.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import Literal
+
+import torch
+
+__all__ = [
+    "imagined_rollout",
+    "continuation_weights",
+    "discounted_reward_sums",
+    "candidate_targets",
+    "horizon_moments",
+    "inverse_variance_weights",
+    "confidence_lower_bound",
+    "expansion_target",
+    "adaptive_alpha",
+]
+
+
+def imagined_rollout(
+    obs: torch.Tensor,
+    policy: Callable[[torch.Tensor], torch.Tensor],
+    step: Callable[[torch.Tensor, torch.Tensor, bool], torch.Tensor],
+    num_members: int,
+    horizon: int,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Rolls every transition member ``horizon`` steps from the real next state (eq. 8).
+
+    Member ``i`` starts from ``s_{t+1}`` (shared), acts with the target policy and moves
+    with its own model: ``a~ = pi'(s~)``, ``s~' = step_i(s~, a~)``.
+
+    Args:
+        obs (Tensor): real next observations ``s_{t+1}``, ``[M, S]``.
+        policy (Callable): ``[*, S] -> [*, A]``.
+        step (Callable): ``(obs, action, per_member) -> [N, M, S]``; ``per_member=False``
+            means the inputs are shared by all members.
+        num_members (int): ``N``.
+        horizon (int): ``H_max``.
+
+    Returns:
+        states ``[N, M, H_max + 1, S]`` and actions ``[N, M, H_max + 1, A]``; index 0 is
+        ``(s_{t+1}, pi'(s_{t+1}))`` for every member.
+
+    Examples:
+        >>> policy = lambda s: torch.ones_like(s)
+        >>> step = lambda s, a, per_member: (s + a).expand(2, *s.shape[-2:])
+        >>> states, actions = imagined_rollout(torch.zeros(3, 1), policy, step, 2, 2)
+        >>> states[0, 0, :, 0]
+        tensor([0., 1., 2.])
+    """
+    action = policy(obs)
+    states = [obs.expand(num_members, *obs.shape)]
+    actions = [action.expand(num_members, *action.shape)]
+    s, a = obs, action
+    for h in range(horizon):
+        s = step(s, a, h > 0)
+        a = policy(s)
+        states.append(s)
+        actions.append(a)
+    return torch.stack(states, -2), torch.stack(actions, -2)
+
+
+def continuation_weights(terminated: torch.Tensor, termination_prob: torch.Tensor) -> torch.Tensor:
+    """Continuation weights ``c_{t,t+h+1}`` for ``h = 0..H_max`` (eq. 9).
+
+    ``c_{t,t+1} = 1 - d_{t+1}`` from the real transition, then
+    ``c_{t,t'} = c_{t,t'-1} (1 - p_d,i(s~_{t'}))``.
+
+    Args:
+        terminated (Tensor): real termination flags ``d_{t+1}``, ``[*B]``.
+        termination_prob (Tensor): ``p_d,i`` at imagined states ``s~_{t+2..t+H_max+1}``,
+            ``[Ni, *B, H_max]``.
+
+    Returns:
+        ``[Ni, *B, H_max + 1]``.
+
+    Examples:
+        >>> continuation_weights(torch.tensor([0.0, 1.0]), torch.full((1, 2, 2), 0.5))
+        tensor([[[1.0000, 0.5000, 0.2500],
+                 [0.0000, 0.0000, 0.0000]]])
+    """
+    first = (1.0 - terminated.to(termination_prob.dtype)).expand(termination_prob.shape[:-1])
+    later = torch.cumprod(1.0 - termination_prob, dim=-1) * first.unsqueeze(-1)
+    return torch.cat([first.unsqueeze(-1), later], -1)
+
+
+def _gamma_powers(gamma: torch.Tensor | float, n: int, like: torch.Tensor) -> torch.Tensor:
+    """``[gamma^1, ..., gamma^n]``."""
+    gamma = torch.as_tensor(gamma, dtype=like.dtype, device=like.device)
+    return gamma.pow(torch.arange(1, n + 1, device=like.device, dtype=like.dtype))
+
+
+def discounted_reward_sums(
+    imagined_rewards: torch.Tensor, continuation: torch.Tensor, gamma: torch.Tensor | float
+) -> torch.Tensor:
+    """Partial sums ``sum_{h=1..H} gamma^h c_{t,t+h} r~_{t+h}(i, j)`` for ``H = 0..H_max``.
+
+    Args:
+        imagined_rewards (Tensor): ``[Ni, Nj, *B, H_max]``.
+        continuation (Tensor): ``[Ni, *B, H_max + 1]``.
+        gamma (float or Tensor): discount.
+
+    Returns:
+        ``[Ni, Nj, *B, H_max + 1]``, entry 0 is zero.
+    """
+    H = imagined_rewards.shape[-1]
+    terms = imagined_rewards * (_gamma_powers(gamma, H, imagined_rewards) * continuation[..., :H]).unsqueeze(1)
+    zero = torch.zeros_like(terms[..., :1])
+    return torch.cat([zero, terms.cumsum(-1)], -1)
+
+
+def candidate_targets(
+    reward: torch.Tensor,
+    imagined_rewards: torch.Tensor,
+    values: torch.Tensor,
+    continuation: torch.Tensor,
+    gamma: torch.Tensor | float,
+) -> torch.Tensor:
+    """All candidate targets ``T_H(i, j, k)`` (eq. 9 with the ensemble of appendix "Rollout Details").
+
+    ``T_H(i,j,k) = r_t + sum_{h=1..H} gamma^h c_{t,t+h} r~_{t+h}(i,j)
+    + gamma^{H+1} c_{t,t+H+1} Q'_k(s~_{t+H+1}, a~_{t+H+1})``.
+
+    Args:
+        reward (Tensor): real reward ``r_t``, ``[*B]``.
+        imagined_rewards (Tensor): ``[Ni, Nj, *B, H_max]``.
+        values (Tensor): ``[Ni, K, *B, H_max + 1]``.
+        continuation (Tensor): ``[Ni, *B, H_max + 1]``.
+        gamma (float or Tensor): discount.
+
+    Returns:
+        ``[Ni, Nj, K, *B, H_max + 1]``: ``Ni * Nj * K * (H_max + 1)`` candidates per sample.
+
+    Examples:
+        >>> T = candidate_targets(torch.zeros(5), torch.zeros(4, 4, 5, 3),
+        ...                       torch.ones(4, 2, 5, 4), torch.ones(4, 5, 4), 0.5)
+        >>> T.shape, T[0, 0, 0, 0]
+        (torch.Size([4, 4, 2, 5, 4]), tensor([0.5000, 0.2500, 0.1250, 0.0625]))
+    """
+    H1 = values.shape[-1]
+    reward_sums = discounted_reward_sums(imagined_rewards, continuation, gamma)  # [Ni, Nj, *B, H+1]
+    bootstrap = (_gamma_powers(gamma, H1, values) * continuation).unsqueeze(1) * values  # [Ni, K, *B, H+1]
+    return reward.unsqueeze(-1) + reward_sums.unsqueeze(2) + bootstrap.unsqueeze(1)
+
+
+def horizon_moments(candidates: torch.Tensor, ensemble_dims: int = 3) -> tuple[torch.Tensor, torch.Tensor]:
+    """Mean ``E_H`` and (population) variance ``V_H`` over the leading ensemble dimensions.
+
+    Args:
+        candidates (Tensor): ``[Ni, Nj, K, *B, H_max + 1]``.
+        ensemble_dims (int): how many leading dimensions index ensemble members.
+
+    Returns:
+        ``(mean, var)``, each ``[*B, H_max + 1]``.
+    """
+    dims = tuple(range(ensemble_dims))
+    var, mean = torch.var_mean(candidates, dim=dims, correction=0)
+    return mean, var
+
+
+def inverse_variance_weights(var: torch.Tensor, eps: float = 1e-8) -> torch.Tensor:
+    """STEVE's horizon weights ``w_H = 1 / (V_H + eps)``, normalised to sum to one (eq. 6).
+
+    Examples:
+        >>> inverse_variance_weights(torch.tensor([[1.0, 3.0]]), eps=0.0)
+        tensor([[0.7500, 0.2500]])
+    """
+    w = 1.0 / (var + eps)
+    return w / w.sum(-1, keepdim=True)
+
+
+def confidence_lower_bound(
+    mean: torch.Tensor, var: torch.Tensor, alpha: torch.Tensor | float
+) -> torch.Tensor:
+    """``alpha``-confidence lower bound ``E_H - alpha sqrt(V_H)`` (eq. 10).
+
+    ``alpha`` is a scalar or per-sample ``[*B]`` (broadcast over horizons).
+    """
+    if isinstance(alpha, torch.Tensor) and alpha.dim() > 0:
+        alpha = alpha.unsqueeze(-1)
+    return mean - alpha * var.sqrt()
+
+
+def expansion_target(
+    mean: torch.Tensor,
+    var: torch.Tensor,
+    *,
+    mix: Literal["inverse_variance", "fixed"],
+    alpha: torch.Tensor | float = 0.0,
+    horizon: int | None = None,
+    eps: float = 1e-8,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Combines per-horizon moments into one target.
+
+    - ``mix="inverse_variance"``: ``sum_H w_H CLB_H / sum_H w_H`` with ``w_H = 1/V_H``:
+      STEVE (eq. 6) with ``alpha = 0``, RAVE (eq. 11) otherwise.
+    - ``mix="fixed"``: ``CLB_H`` at one horizon (``horizon``, default the last): MVE
+      (eq. 5) with ``alpha = 0``.
+
+    Args:
+        mean (Tensor): ``E_H``, ``[*B, H_max + 1]``.
+        var (Tensor): ``V_H``, ``[*B, H_max + 1]``.
+
+    Returns:
+        ``(target [*B], weights [*B, H_max + 1])``.
+
+    Examples:
+        >>> mean, var = torch.tensor([[1.0, 2.0]]), torch.tensor([[1.0, 1.0]])
+        >>> expansion_target(mean, var, mix="inverse_variance")[0]
+        tensor([1.5000])
+        >>> expansion_target(mean, var, mix="inverse_variance", alpha=1.0)[0]
+        tensor([0.5000])
+        >>> expansion_target(mean, var, mix="fixed", horizon=0)[0]
+        tensor([1.])
+    """
+    clb = confidence_lower_bound(mean, var, alpha)
+    if mix == "inverse_variance":
+        weights = inverse_variance_weights(var, eps)
+    elif mix == "fixed":
+        H = mean.shape[-1] - 1 if horizon is None else horizon
+        weights = torch.zeros_like(mean)
+        weights[..., H] = 1.0
+    else:
+        raise ValueError(f"mix must be 'inverse_variance' or 'fixed', got {mix!r}")
+    return (weights * clb).sum(-1), weights
+
+
+def adaptive_alpha(
+    prediction_error: torch.Tensor, alpha: torch.Tensor | float, scale: torch.Tensor | float = 1.0
+) -> torch.Tensor:
+    """Per-sample confidence factor ``max(0, alpha (1 - err / Z))`` (eq. 12).
+
+    Args:
+        prediction_error (Tensor): ``||mean_i f_s,i(s_t, a_t) - s_{t+1}||^2`` in the model's
+            normalised units, ``[*B]``.
+        alpha (float or Tensor): the constant ``alpha``.
+        scale (float or Tensor): ``Z``.
+
+    Examples:
+        >>> adaptive_alpha(torch.tensor([0.0, 0.5, 3.0]), 1.5, 1.0)
+        tensor([1.5000, 0.7500, 0.0000])
+    """
+    return (alpha * (1.0 - prediction_error / scale)).clamp_min(0.0)

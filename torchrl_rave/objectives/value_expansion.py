@@ -1,0 +1,504 @@
+"""Value-expansion estimators (MVE, STEVE, RAVE) as TorchRL value estimators."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Literal
+
+import torch
+from tensordict import TensorDict, TensorDictBase
+from tensordict.nn import TensorDictModuleBase
+from tensordict.utils import NestedKey
+from torchrl.objectives.value import ValueEstimatorBase
+
+from torchrl_rave._checks import check_non_negative, check_positive_int, get_checked
+from torchrl_rave.modules.world_model import WorldModelEnsemble
+from torchrl_rave.objectives import functional as VF
+
+__all__ = [
+    "ValueExpansionEstimator",
+    "MVEEstimator",
+    "STEVEEstimator",
+    "RAVEValueEstimator",
+    "make_value_expansion_estimator",
+]
+
+RolloutMode = Literal["sample", "mean"]
+MixMode = Literal["inverse_variance", "fixed"]
+AlphaMode = Literal["constant", "adaptive", "tensordict"]
+
+
+class ValueExpansionEstimator(ValueEstimatorBase):
+    """Model-based value-expansion target for a Q-function: the MVE / STEVE / RAVE family.
+
+    From every real transition ``(s_t, a_t, r_t, s_{t+1}, d_{t+1})`` it rolls each of the
+    ``N`` transition members ``H_max`` steps with the target policy, scores the imagined
+    steps with the ``N`` reward members and the last state of each horizon with the ``K``
+    target critics, and forms the ``N * N * K * (H_max + 1)`` candidate targets ``T_H(i,j,k)``
+    (paper eq. 9). Their per-horizon mean ``E_H`` and variance ``V_H`` give the target:
+
+    ============  ==========  ==================  =========================
+    algorithm     ``rollout``  ``mix``             ``alpha``
+    ============  ==========  ==================  =========================
+    MVE (eq. 5)   ``"mean"``  ``"fixed"``         0
+    STEVE (eq. 6) ``"mean"``  ``"inverse_variance"``  0
+    RAVE (eq. 11) ``"sample"`` ``"inverse_variance"`` ``alpha`` or ``alpha(s,a)`` (eq. 12)
+    ============  ==========  ==================  =========================
+
+    Network evaluations per batch of ``M`` samples: ``N M H_max`` transition rows,
+    ``N^2 M H_max`` reward rows, ``K M (1 + N H_max)`` critic rows and
+    ``M (1 + N H_max)`` actor rows, combined by broadcasting (never ``N^3`` calls).
+    The target carries no gradient: neither the critics, the actor nor the world model
+    receive any through it.
+
+    The estimator reads the loss's *target* actor and critic parameters at call time
+    (:meth:`for_loss` wires them), so soft updates are seen without re-wiring. A critic
+    with stacked parameters (leading dim ``K``, as in ``TD3Loss``) is evaluated as a
+    ``K``-member ensemble through ``torch.vmap``; plain parameters mean ``K = 1``.
+
+    The world model and the networks are held by reference, not registered as
+    submodules, so they do not appear twice in the loss's ``parameters()``.
+
+    Keyword Args:
+        world_model (WorldModelEnsemble): the probabilistic ensemble (any object with the
+            same ``num_models``/``step``/``reward``/``termination_prob`` methods works).
+        actor_network (TensorDictModuleBase): deterministic policy ``observation -> action``.
+        value_network (TensorDictModuleBase): critic ``(observation, action) -> value``.
+        gamma (float): discount.
+        horizon (int): ``H_max`` for the inverse-variance mix; the fixed ``H`` for MVE.
+        rollout (str): ``"sample"`` (draw from each member's Gaussian) or ``"mean"``.
+        mix (str): ``"inverse_variance"`` or ``"fixed"``.
+        alpha (float): confidence factor ``alpha`` (>= 0).
+        alpha_mode (str): ``"constant"`` uses ``alpha``; ``"adaptive"`` uses
+            ``max(0, alpha (1 - err(s,a) / Z))`` from the world model's one-step error on
+            the real transition (eq. 12); ``"tensordict"`` reads a per-sample alpha
+            written by :class:`~torchrl_rave.transforms.AdaptiveAlpha` under the ``alpha`` key.
+        alpha_error_scale (float): ``Z`` of eq. 12.
+        actor_params (TensorDictBase, optional): parameters to run the actor with
+            (typically target parameters). Defaults to the module's own.
+        value_params (TensorDictBase, optional): critic parameters, optionally stacked
+            with a leading ensemble dimension ``K``. Defaults to the module's own.
+        variance_eps (float): ``eps`` in ``w_H = 1 / (V_H + eps)``.
+        check_inputs (bool): validate shapes and reject NaN/inf in the batch (one
+            device sync per call). Defaults to ``True``.
+        device (torch.device, optional): where the buffers live.
+
+    Examples:
+        >>> from torchrl.modules import MLP, Actor, ValueOperator
+        >>> from torchrl.objectives import DDPGLoss
+        >>> wm = WorldModelEnsemble(3, 1, num_models=2, transition_cells=8, reward_cells=8,
+        ...                         termination_cells=8)
+        >>> actor = Actor(MLP(in_features=3, out_features=1, num_cells=[8]))
+        >>> qvalue = ValueOperator(MLP(in_features=4, out_features=1, num_cells=[8]),
+        ...                        in_keys=["observation", "action"])
+        >>> loss = DDPGLoss(actor, qvalue, delay_actor=True, delay_value=True)
+        >>> _ = loss.make_value_estimator(RAVEValueEstimator.for_loss(
+        ...     loss, world_model=wm, gamma=0.99, horizon=3, alpha=1.5))
+        >>> batch = TensorDict(
+        ...     observation=torch.randn(8, 3), action=torch.rand(8, 1),
+        ...     next=TensorDict(observation=torch.randn(8, 3), reward=torch.randn(8, 1),
+        ...                     done=torch.zeros(8, 1, dtype=torch.bool),
+        ...                     terminated=torch.zeros(8, 1, dtype=torch.bool), batch_size=[8]),
+        ...     batch_size=[8])
+        >>> loss.value_estimator.value_estimate(batch).shape
+        torch.Size([8, 1])
+        >>> batch["rave_horizon_weights"].shape, batch["rave_alpha"].shape
+        (torch.Size([8, 4]), torch.Size([8, 1]))
+    """
+
+    @dataclass
+    class _AcceptedKeys:
+        """Configurable tensordict keys (``set_keys``).
+
+        Attributes:
+            advantage (NestedKey): where ``forward`` writes ``target - value``. Defaults to ``"advantage"``.
+            value_target (NestedKey): where ``forward`` writes the target. Defaults to ``"value_target"``.
+            value (NestedKey): the critic's output. Defaults to ``"state_action_value"``.
+            reward (NestedKey): reward, read under ``"next"``. Defaults to ``"reward"``.
+            done (NestedKey): done flag, read under ``"next"``. Defaults to ``"done"``.
+            terminated (NestedKey): termination flag, read under ``"next"``. Defaults to ``"terminated"``.
+            observation (NestedKey): observation entry. Defaults to ``"observation"``.
+            action (NestedKey): action entry. Defaults to ``"action"``.
+            alpha (NestedKey): per-sample alpha used (written; read in ``"tensordict"`` mode).
+                Defaults to ``"rave_alpha"``.
+            horizon_variance (NestedKey): ``V_H`` per sample, ``[*B, H_max + 1]``.
+                Defaults to ``"rave_horizon_variance"``.
+            horizon_weights (NestedKey): normalised ``w_H`` per sample. Defaults to
+                ``"rave_horizon_weights"``.
+        """
+
+        advantage: NestedKey = "advantage"
+        value_target: NestedKey = "value_target"
+        value: NestedKey = "state_action_value"
+        reward: NestedKey = "reward"
+        done: NestedKey = "done"
+        terminated: NestedKey = "terminated"
+        observation: NestedKey = "observation"
+        action: NestedKey = "action"
+        alpha: NestedKey = "rave_alpha"
+        horizon_variance: NestedKey = "rave_horizon_variance"
+        horizon_weights: NestedKey = "rave_horizon_weights"
+
+    default_keys = _AcceptedKeys
+
+    def __init__(
+        self,
+        *,
+        world_model: WorldModelEnsemble,
+        actor_network: TensorDictModuleBase,
+        value_network: TensorDictModuleBase,
+        gamma: float,
+        horizon: int = 3,
+        rollout: RolloutMode = "sample",
+        mix: MixMode = "inverse_variance",
+        alpha: float = 0.0,
+        alpha_mode: AlphaMode = "constant",
+        alpha_error_scale: float = 1.0,
+        actor_params: TensorDictBase | None = None,
+        value_params: TensorDictBase | None = None,
+        variance_eps: float = 1e-8,
+        check_inputs: bool = True,
+        device: torch.device | None = None,
+    ) -> None:
+        super().__init__(value_network=value_network, differentiable=False, device=device)
+        check_positive_int("horizon", horizon, minimum=0)
+        check_non_negative("alpha", alpha)
+        if not 0.0 <= float(gamma) <= 1.0:
+            raise ValueError(f"gamma must lie in [0, 1], got {gamma!r}")
+        if float(alpha_error_scale) <= 0:
+            raise ValueError(f"alpha_error_scale (Z) must be > 0, got {alpha_error_scale!r}")
+        if rollout not in ("sample", "mean"):
+            raise ValueError(f"rollout must be 'sample' or 'mean', got {rollout!r}")
+        if mix not in ("inverse_variance", "fixed"):
+            raise ValueError(f"mix must be 'inverse_variance' or 'fixed', got {mix!r}")
+        if alpha_mode not in ("constant", "adaptive", "tensordict"):
+            raise ValueError(
+                f"alpha_mode must be 'constant', 'adaptive' or 'tensordict', got {alpha_mode!r}"
+            )
+        check_positive_int("world_model.num_models", getattr(world_model, "num_models", None))
+        self.horizon = horizon
+        self.rollout = rollout
+        self.mix = mix
+        self.alpha_mode = alpha_mode
+        self.variance_eps = variance_eps
+        self.check_inputs = check_inputs
+        self.register_buffer("gamma", torch.tensor(float(gamma), device=self._device))
+        self.register_buffer("alpha", torch.tensor(float(alpha), device=self._device))
+        self.register_buffer(
+            "alpha_error_scale", torch.tensor(float(alpha_error_scale), device=self._device)
+        )
+        # Held by reference: the loss (or the user) owns and trains these.
+        self.__dict__["world_model"] = world_model
+        self.__dict__["actor_network"] = actor_network
+        self.__dict__["_actor_params"] = actor_params
+        self.__dict__["_value_params"] = value_params
+        self.__dict__["_loss"] = None
+        self.__dict__["_loss_param_names"] = None
+
+    # ----------------------------------------------------------------- wiring
+    @classmethod
+    def for_loss(cls, loss_module, **hyperparams) -> ValueExpansionEstimator:
+        """Builds an estimator on ``loss_module``'s actor and critic (target parameters).
+
+        Works with ``DDPGLoss`` (``value_network``, ``K = 1``), ``TD3Loss`` and other losses
+        exposing ``qvalue_network`` with stacked parameters (``K`` = their number), and
+        copies the loss's key names (value, reward, done, terminated, action).
+
+        Keyword Args:
+            world_model (WorldModelEnsemble): required.
+            **hyperparams: the constructor's other keyword arguments.
+        """
+        if "world_model" not in hyperparams:
+            raise ValueError(f"{cls.__name__}.for_loss needs world_model=")
+        actor = hyperparams.pop("actor_network", None) or getattr(loss_module, "actor_network", None)
+        if actor is None:
+            raise ValueError(
+                f"{type(loss_module).__name__} has no actor_network; pass actor_network= explicitly"
+            )
+        if "qvalue_network" in loss_module._modules or hasattr(loss_module, "qvalue_network_params"):
+            critic_name = "qvalue_network"
+        elif hasattr(loss_module, "value_network_params"):
+            critic_name = "value_network"
+        else:
+            raise ValueError(
+                f"{type(loss_module).__name__} has neither a qvalue_network nor a value_network"
+            )
+        estimator = cls(
+            actor_network=actor,
+            value_network=getattr(loss_module, critic_name),
+            **hyperparams,
+        )
+        estimator.__dict__["_loss"] = loss_module
+        estimator.__dict__["_loss_param_names"] = (
+            "target_actor_network_params",
+            f"target_{critic_name}_params",
+        )
+        loss_keys = loss_module.tensor_keys
+        forwarded = {
+            "value": getattr(loss_keys, "state_action_value", None),
+            "reward": getattr(loss_keys, "reward", None),
+            "done": getattr(loss_keys, "done", None),
+            "terminated": getattr(loss_keys, "terminated", None),
+            "action": getattr(loss_keys, "action", None),
+        }
+        estimator.set_keys(**{k: v for k, v in forwarded.items() if v is not None})
+        return estimator
+
+    def _params(self, target_params: TensorDictBase | None):
+        if target_params is not None and ("module", "0") in target_params.keys(True):
+            # DDPGLoss passes its actor-critic target parameters in this layout.
+            return target_params["module", "0"], target_params["module", "1"]
+        if self._loss is not None:
+            return tuple(getattr(self._loss, name) for name in self._loss_param_names)
+        return self._actor_params, self._value_params
+
+    @property
+    def in_keys(self):
+        k = self.tensor_keys
+        return [
+            k.observation,
+            k.action,
+            ("next", k.observation),
+            ("next", k.reward),
+            ("next", k.done),
+            ("next", k.terminated),
+        ]
+
+    @property
+    def out_keys(self):
+        k = self.tensor_keys
+        return [k.value_target, k.alpha, k.horizon_variance, k.horizon_weights]
+
+    # ------------------------------------------------------------ network calls
+    def _policy(self, obs: torch.Tensor) -> torch.Tensor:
+        k = self.tensor_keys
+        td = TensorDict({k.observation: obs}, batch_size=obs.shape[:-1])
+        return self.actor_network(td).get(k.action)
+
+    def _critic(self, obs: torch.Tensor, action: torch.Tensor, params) -> torch.Tensor:
+        """Critic values ``[K, *B]`` (``K = 1`` without stacked parameters)."""
+        k = self.tensor_keys
+        net = self.value_network
+
+        def call(o, a, p):
+            td = TensorDict({k.observation: o, k.action: a}, batch_size=o.shape[:-1])
+            if p is None:
+                return net(td).get(k.value)
+            with p.to_module(net, preserve_module_state=False):
+                return net(td).get(k.value)
+
+        if params is not None and params.batch_dims >= 1:
+            return torch.vmap(call, (None, None, 0))(obs, action, params).squeeze(-1)
+        return call(obs, action, params).squeeze(-1).unsqueeze(0)
+
+    def _alpha(self, obs, action, next_obs, tensordict, batch_shape) -> torch.Tensor:
+        if self.alpha_mode == "constant":
+            return self.alpha
+        if self.alpha_mode == "tensordict":
+            key = self.tensor_keys.alpha
+            alpha = tensordict.get(key, None)
+            if alpha is None:
+                raise ValueError(
+                    f"alpha_mode='tensordict' but the batch has no {key!r} entry; apply the "
+                    "AdaptiveAlpha transform to sampled batches first"
+                )
+            return alpha.reshape(-1)
+        err = self.world_model.mean_prediction_error(obs, action, next_obs)
+        return VF.adaptive_alpha(err, self.alpha, self.alpha_error_scale)
+
+    # ------------------------------------------------------------------ target
+    def _read_batch(self, tensordict: TensorDictBase):
+        k = self.tensor_keys
+        wm = self.world_model
+        check = self.check_inputs
+        S = getattr(wm, "observation_dim", None) if check else None
+        A = getattr(wm, "action_dim", None) if check else None
+        obs = get_checked(tensordict, k.observation, S, check_finite=check)
+        action = get_checked(tensordict, k.action, A, check_finite=check)
+        next_obs = get_checked(tensordict, ("next", k.observation), S, check_finite=check)
+        reward = get_checked(tensordict, ("next", k.reward), check_finite=check)
+        terminated = tensordict.get(("next", k.terminated), None)
+        if terminated is None:
+            terminated = get_checked(tensordict, ("next", k.done), check_finite=False)
+        batch_shape = reward.shape[:-1] if reward.shape[-1:] == (1,) else reward.shape
+        if check and obs.shape[:-1] != batch_shape:
+            raise ValueError(
+                f"reward has batch shape {tuple(batch_shape)} but observation has shape "
+                f"{tuple(obs.shape)}; expected [*B, 1] rewards for [*B, S] observations"
+            )
+        return obs, action, next_obs, reward, terminated, batch_shape
+
+    @torch.no_grad()
+    def value_estimate(
+        self,
+        tensordict: TensorDictBase,
+        target_params: TensorDictBase | None = None,
+        next_value: torch.Tensor | None = None,
+        **kwargs,
+    ) -> torch.Tensor:
+        """Computes the target ``[*B, 1]`` and writes the diagnostics into ``tensordict``.
+
+        Args:
+            tensordict (TensorDictBase): a batch of transitions with batch shape ``[*B]``.
+            target_params (TensorDictBase, optional): ``DDPGLoss``-style actor-critic
+                parameters (``("module", "0")`` actor, ``("module", "1")`` critic); when
+                absent the wired target parameters are used.
+        """
+        if next_value is not None:
+            raise ValueError(f"{type(self).__name__} computes its own values; next_value is not supported")
+        wm = self.world_model
+        N, H = wm.num_models, self.horizon
+        obs, action, next_obs, reward, terminated, batch_shape = self._read_batch(tensordict)
+        S, A = obs.shape[-1], action.shape[-1]
+        obs, action, next_obs = obs.reshape(-1, S), action.reshape(-1, A), next_obs.reshape(-1, S)
+        reward, terminated = reward.reshape(-1), terminated.reshape(-1)
+        M = reward.shape[0]
+        sample = self.rollout == "sample"
+        alpha = self._alpha(obs, action, next_obs, tensordict, batch_shape)
+        actor_params, value_params = self._params(target_params)
+
+        def step(s, a, per_member):
+            return wm.step(s, a, sample=sample, per_member=per_member)
+
+        if actor_params is not None:
+            with actor_params.to_module(self.actor_network, preserve_module_state=False):
+                states, actions = VF.imagined_rollout(next_obs, self._policy, step, N, H)
+        else:
+            states, actions = VF.imagined_rollout(next_obs, self._policy, step, N, H)
+        # states/actions: [N, M, H+1, F]
+
+        # Reward members score every transition member's steps: [Nj, Ni, M, H].
+        rewards = wm.reward(
+            states[:, :, :-1], actions[:, :, :-1], states[:, :, 1:], sample=sample
+        ).squeeze(-1)
+        done_prob = wm.termination_prob(states[:, :, 1:], per_member=True).squeeze(-1)  # [Ni, M, H]
+
+        # Horizon 0 is the same real state for every member: evaluate it once.
+        flat_s = torch.cat([states[0, :, 0], states[:, :, 1:].reshape(-1, S)])
+        flat_a = torch.cat([actions[0, :, 0], actions[:, :, 1:].reshape(-1, A)])
+        q = self._critic(flat_s, flat_a, value_params)  # [K, M + N*M*H]
+        K = q.shape[0]
+        q0 = q[:, :M].reshape(K, 1, M, 1).expand(K, N, M, 1)
+        values = torch.cat([q0, q[:, M:].reshape(K, N, M, H)], -1).transpose(0, 1)  # [Ni, K, M, H+1]
+
+        continuation = VF.continuation_weights(terminated, done_prob)
+        candidates = VF.candidate_targets(
+            reward, rewards.transpose(0, 1), values, continuation, self.gamma
+        )
+        mean, var = VF.horizon_moments(candidates)
+        target, weights = VF.expansion_target(
+            mean, var, mix=self.mix, alpha=alpha, horizon=H, eps=self.variance_eps
+        )
+
+        k = self.tensor_keys
+        tensordict.set(k.alpha, alpha.expand(M).reshape(*batch_shape, 1))
+        tensordict.set(k.horizon_variance, var.reshape(*batch_shape, H + 1))
+        tensordict.set(k.horizon_weights, weights.reshape(*batch_shape, H + 1))
+        return target.reshape(*batch_shape, 1)
+
+    def forward(
+        self,
+        tensordict: TensorDictBase,
+        *,
+        params: TensorDictBase | None = None,
+        target_params: TensorDictBase | None = None,
+    ) -> TensorDictBase:
+        """Writes the target under ``value_target`` (and ``advantage = target - value``
+        when the batch already holds the critic's ``value``)."""
+        target = self.value_estimate(tensordict, target_params=target_params)
+        k = self.tensor_keys
+        tensordict.set(k.value_target, target)
+        value = tensordict.get(k.value, None)
+        if value is not None:
+            tensordict.set(k.advantage, target - value)
+        return tensordict
+
+    def extra_repr(self) -> str:
+        return (
+            f"horizon={self.horizon}, rollout={self.rollout!r}, mix={self.mix!r}, "
+            f"alpha={float(self.alpha)}, alpha_mode={self.alpha_mode!r}"
+        )
+
+
+class MVEEstimator(ValueExpansionEstimator):
+    """MVE (paper eq. 5): the ensemble-mean ``H``-step expansion of deterministic (mean) rollouts.
+
+    ``horizon`` is the fixed expansion length ``H``. Same keyword arguments as
+    :class:`ValueExpansionEstimator` except ``rollout``, ``mix`` and ``alpha``.
+    """
+
+    def __init__(self, *, horizon: int = 3, **kwargs) -> None:
+        super().__init__(horizon=horizon, rollout="mean", mix="fixed", alpha=0.0, **kwargs)
+
+
+class STEVEEstimator(ValueExpansionEstimator):
+    """STEVE (paper eq. 6): inverse-variance mix of ``H = 0..H_max`` over mean rollouts.
+
+    Same keyword arguments as :class:`ValueExpansionEstimator` except ``rollout``,
+    ``mix`` and ``alpha``.
+    """
+
+    def __init__(self, *, horizon: int = 3, **kwargs) -> None:
+        super().__init__(horizon=horizon, rollout="mean", mix="inverse_variance", alpha=0.0, **kwargs)
+
+
+class RAVEValueEstimator(ValueExpansionEstimator):
+    """RAVE (paper eq. 11-12): inverse-variance mix of ``alpha``-confidence lower bounds
+    over sampled (DVE) rollouts of the probabilistic ensemble.
+
+    By default ``alpha`` is adaptive (eq. 12: ``alpha(s, a) = max(0, alpha (1 - err / Z))``,
+    paper values ``alpha = 1.5``, ``Z = 1``); ``adaptive_alpha=False`` keeps it constant
+    (the paper's ablation uses 0, 0.5 and 2.0). ``alpha = 0`` is "STEVE on a probabilistic
+    ensemble".
+
+    Keyword Args:
+        alpha (float): the constant ``alpha``. Defaults to 1.5.
+        adaptive_alpha (bool): eq. 12 when ``True`` (default), constant otherwise.
+        alpha_mode (str, optional): overrides ``adaptive_alpha`` (``"tensordict"`` reads
+            the :class:`~torchrl_rave.transforms.AdaptiveAlpha` transform's output).
+        **kwargs: see :class:`ValueExpansionEstimator`.
+    """
+
+    def __init__(
+        self,
+        *,
+        horizon: int = 3,
+        alpha: float = 1.5,
+        adaptive_alpha: bool = True,
+        alpha_mode: AlphaMode | None = None,
+        **kwargs,
+    ) -> None:
+        if alpha_mode is None:
+            alpha_mode = "adaptive" if adaptive_alpha else "constant"
+        super().__init__(
+            horizon=horizon,
+            rollout="sample",
+            mix="inverse_variance",
+            alpha=alpha,
+            alpha_mode=alpha_mode,
+            **kwargs,
+        )
+
+
+_BY_NAME = {
+    "mve": MVEEstimator,
+    "steve": STEVEEstimator,
+    "rave": RAVEValueEstimator,
+}
+
+
+def make_value_expansion_estimator(name: str, loss_module, **kwargs) -> ValueExpansionEstimator:
+    """Picks an estimator by name (``"mve"``, ``"steve"``, ``"rave"``) and wires it to a loss.
+
+    Examples:
+        >>> make_value_expansion_estimator("dqn", None)
+        Traceback (most recent call last):
+        ...
+        ValueError: unknown value-expansion estimator 'dqn'; choose one of ['mve', 'steve', 'rave']
+    """
+    cls = _BY_NAME.get(str(name).lower())
+    if cls is None:
+        raise ValueError(
+            f"unknown value-expansion estimator {name!r}; choose one of {list(_BY_NAME)}"
+        )
+    return cls.for_loss(loss_module, **kwargs)

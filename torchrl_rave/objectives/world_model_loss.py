@@ -1,0 +1,179 @@
+"""Training loss of the probabilistic world-model ensemble."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+from tensordict import TensorDict, TensorDictBase
+from tensordict.utils import NestedKey
+from torch.nn import functional as F
+from torchrl.objectives import LossModule
+
+from torchrl_rave._checks import get_checked
+from torchrl_rave.modules.world_model import WorldModelEnsemble
+
+__all__ = ["WorldModelLoss", "gaussian_nll"]
+
+_HALF_LOG_2PI = 0.5 * math.log(2 * math.pi)
+
+
+def gaussian_nll(mean: torch.Tensor, logvar: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+    """Elementwise negative log likelihood of ``target`` under ``N(mean, exp(logvar))`` (paper eq. 3).
+
+    Examples:
+        >>> gaussian_nll(torch.zeros(1), torch.zeros(1), torch.zeros(1))  # -log N(0; 0, 1)
+        tensor([0.9189])
+    """
+    return 0.5 * ((target - mean).pow(2) * torch.exp(-logvar) + logvar) + _HALF_LOG_2PI
+
+
+class WorldModelLoss(LossModule):
+    """Gaussian NLL for transition and reward, cross-entropy for termination.
+
+    Each member trains on its own bootstrap resample of the batch: indices are drawn
+    independently per member (``[N, B]``), so the ensemble does not collapse into copies.
+    The learned log-variance bounds get the usual small penalty
+    (``logvar_bound_coeff * (sum max - sum min)``).
+
+    The output holds three losses to sum (``loss_transition``, ``loss_reward``,
+    ``loss_termination``) and, for logging, per-head NLL/MSE (normalised units, averaged
+    over members) and termination accuracy.
+
+    Args:
+        world_model (WorldModelEnsemble): the ensemble to train.
+
+    Keyword Args:
+        bootstrap (bool): resample the batch per member. Defaults to ``True``.
+        logvar_bound_coeff (float): weight of the log-variance bound penalty. Defaults to 0.01.
+        reward_coeff (float): weight of the reward loss. Defaults to 1.
+        termination_coeff (float): weight of the termination loss. Defaults to 1.
+
+    Examples:
+        >>> wm = WorldModelEnsemble(3, 1, num_models=2, transition_cells=8, reward_cells=8,
+        ...                         termination_cells=8)
+        >>> batch = TensorDict(
+        ...     observation=torch.randn(16, 3), action=torch.rand(16, 1),
+        ...     next=TensorDict(observation=torch.randn(16, 3), reward=torch.randn(16, 1),
+        ...                     terminated=torch.zeros(16, 1, dtype=torch.bool), batch_size=[16]),
+        ...     batch_size=[16])
+        >>> loss = WorldModelLoss(wm)
+        >>> out = loss(batch)
+        >>> sorted(out.keys())  # doctest: +NORMALIZE_WHITESPACE
+        ['loss_reward', 'loss_termination', 'loss_transition', 'reward_mse', 'reward_nll',
+         'termination_accuracy', 'termination_bce', 'transition_mse', 'transition_nll']
+        >>> (out["loss_transition"] + out["loss_reward"] + out["loss_termination"]).backward()
+    """
+
+    @dataclass
+    class _AcceptedKeys:
+        """Keys read from the input tensordict.
+
+        Attributes:
+            observation (NestedKey): current observation. Defaults to ``"observation"``.
+            action (NestedKey): action taken. Defaults to ``"action"``.
+            next_observation (NestedKey): observation after the step.
+                Defaults to ``("next", "observation")``.
+            reward (NestedKey): reward of the step. Defaults to ``("next", "reward")``.
+            terminated (NestedKey): termination flag. Defaults to ``("next", "terminated")``.
+        """
+
+        observation: NestedKey = "observation"
+        action: NestedKey = "action"
+        next_observation: NestedKey = ("next", "observation")
+        reward: NestedKey = ("next", "reward")
+        terminated: NestedKey = ("next", "terminated")
+
+    default_keys = _AcceptedKeys
+    world_model: WorldModelEnsemble
+
+    def __init__(
+        self,
+        world_model: WorldModelEnsemble,
+        *,
+        bootstrap: bool = True,
+        logvar_bound_coeff: float = 0.01,
+        reward_coeff: float = 1.0,
+        termination_coeff: float = 1.0,
+    ) -> None:
+        super().__init__()
+        self.world_model = world_model
+        self.bootstrap = bootstrap
+        self.logvar_bound_coeff = logvar_bound_coeff
+        self.reward_coeff = reward_coeff
+        self.termination_coeff = termination_coeff
+
+    def _forward_value_estimator_keys(self, **kwargs) -> None:
+        # no value estimator to forward keys to
+        pass
+
+    @property
+    def in_keys(self):
+        k = self.tensor_keys
+        return [k.observation, k.action, k.next_observation, k.reward, k.terminated]
+
+    @property
+    def out_keys(self):
+        return ["loss_transition", "loss_reward", "loss_termination"]
+
+    def bootstrap_indices(self, batch_size: int, device: torch.device | None = None) -> torch.Tensor:
+        """Independent resample indices per member, ``[N, batch_size]``."""
+        N = self.world_model.num_models
+        if not self.bootstrap:
+            return torch.arange(batch_size, device=device).expand(N, batch_size)
+        return torch.randint(batch_size, (N, batch_size), device=device)
+
+    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
+        wm = self.world_model
+        keys = self.tensor_keys
+        S, A = wm.observation_dim, wm.action_dim
+        obs = get_checked(tensordict, keys.observation, S).reshape(-1, S)
+        action = get_checked(tensordict, keys.action, A).reshape(-1, A)
+        next_obs = get_checked(tensordict, keys.next_observation, S).reshape(-1, S)
+        reward = get_checked(tensordict, keys.reward).reshape(-1, 1)
+        terminated = get_checked(tensordict, keys.terminated).reshape(-1, 1).to(obs.dtype)
+        if not (obs.shape[0] == action.shape[0] == next_obs.shape[0] == reward.shape[0]):
+            raise ValueError(
+                "observation, action, next observation and reward hold different numbers of "
+                f"transitions: {obs.shape[0]}, {action.shape[0]}, {next_obs.shape[0]}, {reward.shape[0]}"
+            )
+
+        idx = self.bootstrap_indices(obs.shape[0], obs.device)
+        obs, action, next_obs = obs[idx], action[idx], next_obs[idx]  # [N, B, F]
+        reward, terminated = reward[idx], terminated[idx]
+
+        # Members' losses are independent, so summing over members gives each member
+        # exactly its own gradient; batch and feature dimensions are averaged.
+        mean, logvar = wm.predict_transition(obs, action, per_member=True)
+        target = wm.target_delta(obs, next_obs)
+        transition_nll = gaussian_nll(mean, logvar, target).mean((1, 2))
+        transition_mse = (mean - target).pow(2).mean((1, 2))
+
+        r_mean, r_logvar = wm.predict_reward(obs, action, next_obs, per_member=True)
+        r_target = wm.reward_norm.normalize(reward)
+        reward_nll = gaussian_nll(r_mean, r_logvar, r_target).mean((1, 2))
+        reward_mse = (r_mean - r_target).pow(2).mean((1, 2))
+
+        logits = wm.termination_logits(next_obs, per_member=True)
+        termination_bce = F.binary_cross_entropy_with_logits(
+            logits, terminated, reduction="none"
+        ).mean((1, 2))
+
+        c = self.logvar_bound_coeff
+        loss_transition = transition_nll.sum() + c * wm.transition.bound_penalty()
+        loss_reward = self.reward_coeff * (reward_nll.sum() + c * wm.reward_model.bound_penalty())
+        loss_termination = self.termination_coeff * termination_bce.sum()
+        with torch.no_grad():
+            accuracy = ((logits > 0).to(terminated.dtype) == terminated).to(obs.dtype).mean()
+        return TensorDict(
+            loss_transition=loss_transition,
+            loss_reward=loss_reward,
+            loss_termination=loss_termination,
+            transition_nll=transition_nll.detach().mean(),
+            transition_mse=transition_mse.detach().mean(),
+            reward_nll=reward_nll.detach().mean(),
+            reward_mse=reward_mse.detach().mean(),
+            termination_bce=termination_bce.detach().mean(),
+            termination_accuracy=accuracy,
+        )
