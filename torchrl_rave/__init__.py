@@ -25,10 +25,12 @@ from torchrl_rave.objectives import (  # noqa: E402
     WorldModelLoss,
     make_value_expansion_estimator,
 )
+from torchrl_rave.transforms import AdaptiveAlpha  # noqa: E402
 
 __version__ = "0.1.0"
 
 __all__ = [
+    "AdaptiveAlpha",
     "WorldModelEnsemble",
     "WorldModelLoss",
     "ValueExpansionEstimator",

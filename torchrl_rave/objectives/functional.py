@@ -123,7 +123,7 @@ def discounted_reward_sums(
     """
     H = imagined_rewards.shape[-1]
     terms = imagined_rewards * (_gamma_powers(gamma, H, imagined_rewards) * continuation[..., :H]).unsqueeze(1)
-    zero = torch.zeros_like(terms[..., :1])
+    zero = terms.new_zeros(*terms.shape[:-1], 1)
     return torch.cat([zero, terms.cumsum(-1)], -1)
 
 

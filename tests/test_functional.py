@@ -1,0 +1,185 @@
+"""The value-expansion math against naive Python loops over (i, j, k) and H."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+from torchrl_rave.objectives import functional as VF
+
+
+def naive_candidates(reward, rewards, values, terminated, done_prob, gamma):
+    """T_H(i,j,k) written straight from the paper, one scalar at a time.
+
+    reward [B], rewards [Ni, Nj, B, H], values [Ni, K, B, H+1], terminated [B],
+    done_prob [Ni, B, H]  ->  dict[(i, j, k, b, H)] = float
+    """
+    Ni, Nj, B, Hmax = rewards.shape
+    K = values.shape[1]
+    out = {}
+    for i in range(Ni):
+        for j in range(Nj):
+            for k in range(K):
+                for b in range(B):
+                    for H in range(Hmax + 1):
+                        c = 1.0 - float(terminated[b])  # c_{t,t+1}
+                        total = float(reward[b])
+                        for h in range(1, H + 1):
+                            total += gamma**h * c * float(rewards[i, j, b, h - 1])
+                            c *= 1.0 - float(done_prob[i, b, h - 1])  # c_{t,t+h+1}
+                        total += gamma ** (H + 1) * c * float(values[i, k, b, H])
+                        out[i, j, k, b, H] = total
+    return out
+
+
+def naive_moments(cands, Ni, Nj, K, B, Hmax):
+    mean = torch.zeros(B, Hmax + 1, dtype=torch.float64)
+    var = torch.zeros(B, Hmax + 1, dtype=torch.float64)
+    n = Ni * Nj * K
+    for b in range(B):
+        for H in range(Hmax + 1):
+            xs = [cands[i, j, k, b, H] for i in range(Ni) for j in range(Nj) for k in range(K)]
+            m = sum(xs) / n
+            mean[b, H] = m
+            var[b, H] = sum((x - m) ** 2 for x in xs) / n
+    return mean, var
+
+
+def naive_mix(mean, var, alpha, eps):
+    B, H1 = mean.shape
+    out = torch.zeros(B, dtype=torch.float64)
+    for b in range(B):
+        a = float(alpha[b]) if torch.is_tensor(alpha) else alpha
+        ws = [1.0 / (float(var[b, H]) + eps) for H in range(H1)]
+        clbs = [float(mean[b, H]) - a * math.sqrt(float(var[b, H])) for H in range(H1)]
+        out[b] = sum(w * c for w, c in zip(ws, clbs)) / sum(ws)
+    return out
+
+
+def random_case(Ni, Nj, K, B, Hmax, seed):
+    g = torch.Generator().manual_seed(seed)
+    reward = torch.randn(B, generator=g, dtype=torch.float64)
+    rewards = torch.randn(Ni, Nj, B, Hmax, generator=g, dtype=torch.float64)
+    values = 10 * torch.randn(Ni, K, B, Hmax + 1, generator=g, dtype=torch.float64)
+    terminated = (torch.rand(B, generator=g) < 0.3).to(torch.float64)
+    done_prob = torch.rand(Ni, B, Hmax, generator=g, dtype=torch.float64) * 0.5
+    return reward, rewards, values, terminated, done_prob
+
+
+CASES = [
+    # (Ni, Nj, K, B, Hmax)
+    (1, 1, 1, 3, 0),
+    (2, 3, 1, 4, 1),
+    (4, 4, 4, 5, 3),
+    (3, 2, 2, 2, 4),
+]
+
+
+class TestCandidateTargets:
+    @pytest.mark.parametrize("Ni,Nj,K,B,Hmax", CASES)
+    def test_candidates_equal_naive_loop(self, Ni, Nj, K, B, Hmax):
+        reward, rewards, values, terminated, done_prob = random_case(Ni, Nj, K, B, Hmax, seed=Ni + 10 * Hmax)
+        gamma = 0.9
+        cont = VF.continuation_weights(terminated, done_prob)
+        T = VF.candidate_targets(reward, rewards, values, cont, gamma)
+        assert T.shape == (Ni, Nj, K, B, Hmax + 1)
+        ref = naive_candidates(reward, rewards, values, terminated, done_prob, gamma)
+        for idx, x in ref.items():
+            assert T[idx].item() == pytest.approx(x, rel=1e-12, abs=1e-12)
+
+    def test_extra_batch_dimensions(self):
+        Ni, Nj, K, Hmax = 2, 3, 2, 2
+        reward, rewards, values, terminated, done_prob = random_case(Ni, Nj, K, 12, Hmax, seed=3)
+        cont = VF.continuation_weights(terminated, done_prob)
+        flat = VF.candidate_targets(reward, rewards, values, cont, 0.8)
+        cont2 = VF.continuation_weights(terminated.view(3, 4), done_prob.view(Ni, 3, 4, Hmax))
+        shaped = VF.candidate_targets(
+            reward.view(3, 4),
+            rewards.view(Ni, Nj, 3, 4, Hmax),
+            values.view(Ni, K, 3, 4, Hmax + 1),
+            cont2,
+            0.8,
+        )
+        torch.testing.assert_close(shaped.reshape(flat.shape), flat)
+
+    def test_terminal_transition_gives_reward_only(self):
+        reward, rewards, values, _, done_prob = random_case(3, 3, 2, 4, 3, seed=5)
+        terminated = torch.ones(4, dtype=torch.float64)
+        T = VF.candidate_targets(reward, rewards, values, VF.continuation_weights(terminated, done_prob), 0.99)
+        torch.testing.assert_close(T, reward.view(1, 1, 1, 4, 1).expand_as(T))
+
+    def test_certain_model_termination_cuts_later_terms(self):
+        reward, rewards, values, _, _ = random_case(2, 2, 2, 3, 3, seed=6)
+        terminated = torch.zeros(3, dtype=torch.float64)
+        done_prob = torch.ones(2, 3, 3, dtype=torch.float64)  # every imagined state is terminal
+        gamma = 0.9
+        T = VF.candidate_targets(reward, rewards, values, VF.continuation_weights(terminated, done_prob), gamma)
+        first_step = reward.view(1, 1, 1, 3) + gamma * rewards[:, :, None, :, 0]
+        for H in range(1, 4):
+            torch.testing.assert_close(T[..., H], first_step.expand_as(T[..., H]))
+
+
+class TestTargets:
+    @pytest.mark.parametrize("Ni,Nj,K,B,Hmax", CASES)
+    @pytest.mark.parametrize("alpha", [0.0, 1.5, "per-sample"])
+    def test_steve_rave_equal_naive(self, Ni, Nj, K, B, Hmax, alpha):
+        reward, rewards, values, terminated, done_prob = random_case(Ni, Nj, K, B, Hmax, seed=Nj + 7 * K)
+        gamma, eps = 0.95, 1e-8
+        if alpha == "per-sample":
+            alpha = torch.rand(B, dtype=torch.float64) * 2
+        T = VF.candidate_targets(reward, rewards, values, VF.continuation_weights(terminated, done_prob), gamma)
+        mean, var = VF.horizon_moments(T)
+        ref = naive_candidates(reward, rewards, values, terminated, done_prob, gamma)
+        ref_mean, ref_var = naive_moments(ref, Ni, Nj, K, B, Hmax)
+        torch.testing.assert_close(mean, ref_mean)
+        torch.testing.assert_close(var, ref_var)
+        target, weights = VF.expansion_target(mean, var, mix="inverse_variance", alpha=alpha, eps=eps)
+        torch.testing.assert_close(target, naive_mix(ref_mean, ref_var, alpha, eps))
+        torch.testing.assert_close(weights.sum(-1), torch.ones(B, dtype=torch.float64))
+
+    def test_mve_is_fixed_horizon_mean(self):
+        reward, rewards, values, terminated, done_prob = random_case(3, 3, 3, 4, 3, seed=9)
+        T = VF.candidate_targets(reward, rewards, values, VF.continuation_weights(terminated, done_prob), 0.9)
+        mean, var = VF.horizon_moments(T)
+        for H in range(4):
+            target, weights = VF.expansion_target(mean, var, mix="fixed", horizon=H)
+            torch.testing.assert_close(target, mean[:, H])
+            assert weights[:, H].eq(1).all() and weights.sum(-1).eq(1).all()
+
+    def test_inverse_variance_prefers_low_variance_horizon(self):
+        mean = torch.tensor([[0.0, 10.0]])
+        var = torch.tensor([[100.0, 1.0]])
+        target, w = VF.expansion_target(mean, var, mix="inverse_variance")
+        assert w[0, 1] == pytest.approx(100 / 101)
+        assert target.item() == pytest.approx(1000 / 101)
+
+    def test_unknown_mix(self):
+        with pytest.raises(ValueError, match="mix"):
+            VF.expansion_target(torch.zeros(1, 2), torch.ones(1, 2), mix="median")
+
+
+class TestAdaptiveAlphaFunction:
+    @pytest.mark.parametrize("alpha,Z", [(1.5, 1.0), (2.0, 0.5), (0.0, 1.0)])
+    def test_matches_formula(self, alpha, Z):
+        err = torch.tensor([0.0, 0.1, 0.5, 1.0, 4.0])
+        expected = torch.tensor([max(0.0, alpha * (1 - e / Z)) for e in err.tolist()])
+        torch.testing.assert_close(VF.adaptive_alpha(err, alpha, Z), expected)
+
+
+class TestRollout:
+    def test_rollout_calls_members_from_shared_start(self):
+        calls = []
+
+        def step(s, a, per_member):
+            calls.append((tuple(s.shape), per_member))
+            base = s if per_member else s.expand(2, *s.shape)
+            return base + a + torch.tensor([1.0, 2.0]).view(2, 1, 1)
+
+        states, actions = VF.imagined_rollout(torch.zeros(3, 1), lambda s: torch.ones_like(s), step, 2, 2)
+        assert calls == [((3, 1), False), ((2, 3, 1), True)]
+        # member 0 moves by 1 + 1 per step, member 1 by 1 + 2
+        torch.testing.assert_close(states[0, 0, :, 0], torch.tensor([0.0, 2.0, 4.0]))
+        torch.testing.assert_close(states[1, 0, :, 0], torch.tensor([0.0, 3.0, 6.0]))
+        assert actions.shape == (2, 3, 3, 1)

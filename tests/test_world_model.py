@@ -1,0 +1,293 @@
+"""World-model ensemble: batched layers against loops, normalisers, modes, learning, bootstrap."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+from tensordict import TensorDict
+from tensordict.nn import set_interaction_type
+
+from torchrl_rave.modules import EnsembleLinear, EnsembleMLP, RunningNormalizer, WorldModelEnsemble
+from torchrl_rave.objectives import WorldModelLoss, gaussian_nll
+
+
+def small_model(S=3, A=2, N=4, width=16, **kw):
+    return WorldModelEnsemble(
+        S, A, num_models=N, transition_cells=width, transition_layers=3,
+        reward_cells=width, reward_layers=3, termination_cells=width, termination_layers=3, **kw
+    )
+
+
+def transitions(B, S=3, A=2, seed=0):
+    g = torch.Generator().manual_seed(seed)
+    obs = torch.randn(B, S, generator=g)
+    return TensorDict(
+        observation=obs,
+        action=torch.rand(B, A, generator=g) * 2 - 1,
+        next=TensorDict(
+            observation=obs + 0.1 * torch.randn(B, S, generator=g),
+            reward=torch.randn(B, 1, generator=g),
+            terminated=torch.rand(B, 1, generator=g) < 0.2,
+            done=torch.zeros(B, 1, dtype=torch.bool),
+            batch_size=[B],
+        ),
+        batch_size=[B],
+    )
+
+
+class TestEnsembleLayers:
+    @pytest.mark.parametrize("N,M", [(1, 5), (4, 7)])
+    def test_linear_equals_member_loop(self, N, M):
+        layer = EnsembleLinear(N, 3, 2)
+        shared = torch.randn(M, 3)
+        per = torch.randn(N, M, 3)
+        out_shared, out_per = layer(shared), layer(per, per_member=True)
+        for i in range(N):
+            torch.testing.assert_close(out_shared[i], shared @ layer.weight[i] + layer.bias[i])
+            torch.testing.assert_close(out_per[i], per[i] @ layer.weight[i] + layer.bias[i])
+
+    def test_mlp_shared_equals_expanded_per_member(self):
+        mlp = EnsembleMLP(3, 4, 2, num_cells=[8, 8])
+        x = torch.randn(6, 4)
+        torch.testing.assert_close(mlp(x), mlp(x.expand(3, 6, 4), per_member=True))
+
+    def test_members_differ_after_init(self):
+        wm = small_model(N=4)
+        for name, p in wm.named_parameters():
+            if "logvar" in name:  # the log-variance bounds start equal on purpose
+                continue
+            flat = p.detach().reshape(4, -1)
+            for i in range(4):
+                for j in range(i + 1, 4):
+                    assert not torch.equal(flat[i], flat[j]), f"{name}: members {i} and {j} are equal"
+
+    def test_bad_layout(self):
+        mlp = EnsembleMLP(3, 4, 2, num_cells=[8])
+        with pytest.raises(ValueError, match="per-member input"):
+            mlp(torch.randn(2, 6, 4), per_member=True)
+        with pytest.raises(ValueError, match="4 input features"):
+            mlp(torch.randn(6, 5))
+
+
+class TestRunningNormalizer:
+    def test_streamed_equals_full_batch(self):
+        x = torch.randn(1000, 3) * torch.tensor([1.0, 5.0, 0.1]) + torch.tensor([2.0, -1.0, 7.0])
+        norm = RunningNormalizer(3)
+        for chunk in x.split([1, 10, 300, 689]):
+            norm.update(chunk)
+        torch.testing.assert_close(norm.mean, x.mean(0))
+        torch.testing.assert_close(norm.var, x.var(0, unbiased=False), rtol=1e-5, atol=1e-6)
+        assert int(norm.count) == 1000
+
+    def test_constant_feature_is_floored(self):
+        norm = RunningNormalizer(1, min_std=1e-3)
+        norm.update(torch.full((10, 1), 4.0))
+        assert norm.std.item() == pytest.approx(1e-3)
+        assert norm.normalize(torch.tensor([[4.0]])).item() == 0.0
+
+
+class TestWorldModelEnsemble:
+    @pytest.mark.parametrize("batch", [(5,), (2, 3)])
+    def test_shapes(self, batch):
+        wm = small_model(N=4)
+        obs, act = torch.randn(*batch, 3), torch.randn(*batch, 2)
+        assert wm.step(obs, act, sample=True).shape == (4, *batch, 3)
+        nxt = wm.step(obs, act, sample=False)
+        assert wm.step(nxt, act.expand(4, *batch, 2), sample=False, per_member=True).shape == (4, *batch, 3)
+        assert wm.reward(obs, act, obs, sample=True).shape == (4, *batch, 1)
+        assert wm.termination_prob(obs).shape == (4, *batch, 1)
+        assert wm.mean_prediction_error(obs, act, obs).shape == batch
+
+    def test_mean_mode_is_deterministic_and_sample_mode_matches_gaussian(self):
+        torch.manual_seed(0)
+        wm = small_model(S=2, A=1, N=2)
+        wm.update_normalizers(torch.randn(100, 2) * 3, torch.rand(100, 1), torch.randn(100, 2) * 3, torch.randn(100) * 2)
+        obs, act = torch.randn(1, 2), torch.rand(1, 1)
+        a, b = wm.step(obs, act, sample=False), wm.step(obs, act, sample=False)
+        torch.testing.assert_close(a, b)
+        mean, logvar = wm.predict_transition(obs, act)
+        std_raw = (0.5 * logvar).exp() * wm.delta_norm.std
+        draws = wm.step(obs.expand(20000, 2), act.expand(20000, 1), sample=True)  # [N, 20000, 2]
+        torch.testing.assert_close(draws.mean(1), a[:, 0], atol=0.05 * std_raw.max().item() + 1e-4, rtol=0)
+        torch.testing.assert_close(draws.std(1), std_raw[:, 0], rtol=0.03, atol=0)
+        # reward: same story in reward units
+        r_mean = wm.reward(obs, act, obs, sample=False)
+        r_draws = wm.reward(obs.expand(20000, 2), act.expand(20000, 1), obs.expand(20000, 2), sample=True)
+        _, r_logvar = wm.predict_reward(obs, act, obs)
+        r_std = (0.5 * r_logvar).exp() * wm.reward_norm.std
+        torch.testing.assert_close(r_draws.std(1), r_std[:, 0], rtol=0.03, atol=0)
+        torch.testing.assert_close(r_draws.mean(1), r_mean[:, 0], atol=0.05 * r_std.max().item(), rtol=0)
+
+    def test_tensordict_forward_follows_interaction_type(self):
+        torch.manual_seed(0)
+        wm = small_model()
+        td = TensorDict(observation=torch.randn(5, 3), action=torch.randn(5, 2), batch_size=[5])
+        with set_interaction_type("deterministic"):
+            a, b = wm(td.clone()), wm(td.clone())
+        torch.testing.assert_close(a["next", "observation"], b["next", "observation"])
+        torch.testing.assert_close(a["next", "observation"], wm.step(td["observation"], td["action"], sample=False))
+        with set_interaction_type("random"):
+            c = wm(td.clone())
+        assert not torch.allclose(a["next", "observation"], c["next", "observation"])
+        assert a.batch_size == (4, 5)
+
+    def test_normalizers_in_state_dict_and_round_trip(self, tmp_path):
+        wm = small_model()
+        batch = transitions(64)
+        wm.update_normalizers_from(batch)
+        sd = wm.state_dict()
+        for name in ("obs_norm.mean", "obs_norm.var", "delta_norm.mean", "reward_norm.var", "action_norm.count"):
+            assert name in sd
+        torch.save(sd, tmp_path / "wm.pt")
+        other = small_model()
+        other.load_state_dict(torch.load(tmp_path / "wm.pt"))
+        torch.testing.assert_close(
+            other.step(batch["observation"], batch["action"], sample=False),
+            wm.step(batch["observation"], batch["action"], sample=False),
+        )
+
+    def test_from_specs(self):
+        from torchrl.data import Bounded, Composite, Unbounded
+
+        wm = WorldModelEnsemble.from_specs(
+            Composite(observation=Unbounded(shape=(11,))), Bounded(-1, 1, shape=(3,)),
+            num_models=2, transition_cells=8, reward_cells=8, termination_cells=8,
+        )
+        assert (wm.observation_dim, wm.action_dim, wm.num_models) == (11, 3, 2)
+        with pytest.raises(ValueError, match="pixels"):
+            WorldModelEnsemble.from_specs(
+                Composite(observation=Unbounded(shape=(11,))), Bounded(-1, 1, shape=(3,)),
+                observation_key="pixels",
+            )
+
+    def test_default_sizes_follow_paper_depths_and_steve_widths(self):
+        wm = WorldModelEnsemble(4, 2)
+        assert wm.num_models == 4
+        # 8 FC layers for the transition model: 7 trunk layers + the mean/logvar heads
+        assert len(wm.transition.trunk.layers) == 7 and wm.transition.mean_head.in_features == 512
+        assert len(wm.reward_model.trunk.layers) == 3 and wm.reward_model.mean_head.in_features == 128
+        assert len(wm.termination.layers) == 4 and wm.termination.layers[0].out_features == 128
+
+    @pytest.mark.parametrize("bad", [0, -1, 2.5])
+    def test_bad_ensemble_size(self, bad):
+        with pytest.raises(ValueError, match="num_models"):
+            WorldModelEnsemble(3, 1, num_models=bad)
+
+    def test_size_mismatch_is_named(self):
+        wm = small_model()
+        with pytest.raises(ValueError, match="observation of size 3"):
+            wm.step(torch.randn(4, 5), torch.randn(4, 2), sample=False)
+        with pytest.raises(ValueError, match="action of size 2"):
+            wm.step(torch.randn(4, 3), torch.randn(4, 1), sample=False)
+
+
+class TestWorldModelLoss:
+    def test_nll_formula(self):
+        mean, logvar, x = torch.tensor([1.0]), torch.tensor([0.5]), torch.tensor([2.0])
+        expected = torch.distributions.Normal(mean, (0.5 * logvar).exp()).log_prob(x).neg()
+        torch.testing.assert_close(gaussian_nll(mean, logvar, x), expected)
+
+    def test_bootstrap_indices_independent_per_member(self):
+        torch.manual_seed(0)
+        loss = WorldModelLoss(small_model(N=4))
+        idx = loss.bootstrap_indices(256)
+        assert idx.shape == (4, 256)
+        for i in range(4):
+            # a bootstrap resample repeats rows (about 63% unique) ...
+            assert 0.5 < idx[i].unique().numel() / 256 < 0.75
+            for j in range(i + 1, 4):
+                # ... and no two members share their resample
+                assert (idx[i] != idx[j]).float().mean() > 0.9
+
+    @pytest.mark.parametrize("bootstrap", [True, False])
+    def test_members_train_on_different_samples(self, bootstrap):
+        torch.manual_seed(0)
+        wm = small_model(N=3)
+        with torch.no_grad():  # make every member identical, then see whether the updates split
+            for p in wm.parameters():
+                p.copy_(p[:1].expand_as(p))
+        loss = WorldModelLoss(wm, bootstrap=bootstrap)
+        out = loss(transitions(128))
+        (out["loss_transition"] + out["loss_reward"] + out["loss_termination"]).backward()
+        grad = wm.transition.trunk.layers[0].weight.grad
+        same = torch.allclose(grad[0], grad[1]) and torch.allclose(grad[1], grad[2])
+        assert same != bootstrap
+
+    def test_logs_and_errors(self):
+        loss = WorldModelLoss(small_model())
+        out = loss(transitions(32))
+        for key in ("transition_nll", "transition_mse", "reward_nll", "reward_mse", "termination_bce"):
+            assert torch.isfinite(out[key]) and out[key] > 0
+        bad = transitions(32)
+        bad["next", "observation"][3, 1] = float("nan")
+        with pytest.raises(ValueError, match=r"next.*observation.*NaN"):
+            loss(bad)
+        with pytest.raises(ValueError, match="observation"):
+            loss(transitions(32, S=4))
+
+
+class TestLearnsLinearGaussianSystem:
+    """s' = A s + B a + sigma * eps: the mean, the aleatoric std and the epistemic spread."""
+
+    S, Adim = 2, 1
+    A = torch.tensor([[0.9, 0.2], [-0.1, 0.8]])
+    Bm = torch.tensor([[0.5], [-0.3]])
+    sigma = torch.tensor([0.1, 0.3])
+
+    def data(self, n, seed):
+        g = torch.Generator().manual_seed(seed)
+        obs = torch.randn(n, self.S, generator=g)
+        act = torch.rand(n, self.Adim, generator=g) * 2 - 1
+        nxt = obs @ self.A.T + act @ self.Bm.T + self.sigma * torch.randn(n, self.S, generator=g)
+        rew = (obs**2).sum(-1, keepdim=True)
+        return TensorDict(
+            observation=obs, action=act,
+            next=TensorDict(observation=nxt, reward=rew, terminated=torch.zeros(n, 1, dtype=torch.bool), batch_size=[n]),
+            batch_size=[n],
+        )
+
+    def train(self, data, steps, seed):
+        torch.manual_seed(seed)
+        wm = WorldModelEnsemble(
+            self.S, self.Adim, num_models=4, transition_cells=64, transition_layers=3,
+            reward_cells=16, reward_layers=2, termination_cells=8, termination_layers=2,
+        )
+        wm.update_normalizers_from(data)
+        loss = WorldModelLoss(wm)
+        opt = torch.optim.Adam(wm.parameters(), lr=3e-3)
+        n = data.shape[0]
+        for _ in range(steps):
+            batch = data[torch.randint(n, (min(n, 256),))]
+            out = loss(batch)
+            opt.zero_grad()
+            (out["loss_transition"] + out["loss_reward"] + out["loss_termination"]).backward()
+            opt.step()
+        return wm
+
+    def test_mean_and_aleatoric_std(self):
+        wm = self.train(self.data(4000, seed=0), steps=1500, seed=0)
+        test = self.data(2000, seed=1)
+        obs, act = test["observation"], test["action"]
+        with torch.no_grad():
+            mean, logvar = wm.predict_transition(obs, act)
+            pred_next = obs + wm.delta_norm.denormalize(mean)  # [N, B, S]
+            pred_std = (0.5 * logvar).exp() * wm.delta_norm.std
+        true_mean = obs @ self.A.T + act @ self.Bm.T
+        # mean: within a fifth of the noise level on average
+        err = (pred_next.mean(0) - true_mean).abs().mean(0)
+        assert (err < 0.2 * self.sigma).all(), err
+        # aleatoric std: within 10% of the true noise, per dimension
+        std = pred_std.mean((0, 1))
+        assert ((std - self.sigma).abs() / self.sigma < 0.10).all(), std
+
+    def test_epistemic_spread_shrinks_with_data(self):
+        test = self.data(1000, seed=2)
+
+        def spread(n):
+            wm = self.train(self.data(n, seed=3), steps=600, seed=4)
+            with torch.no_grad():
+                mean, _ = wm.predict_transition(test["observation"], test["action"])
+                return (mean * wm.delta_norm.std).var(0, unbiased=False).mean().item()
+
+        small, large = spread(40), spread(4000)
+        assert large < 0.5 * small, (small, large)

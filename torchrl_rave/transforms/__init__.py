@@ -1,0 +1,5 @@
+"""TorchRL transforms."""
+
+from torchrl_rave.transforms.adaptive_alpha import AdaptiveAlpha
+
+__all__ = ["AdaptiveAlpha"]
