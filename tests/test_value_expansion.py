@@ -1,0 +1,466 @@
+"""MVE / STEVE / RAVE estimators: exact cases, naive loops, TorchRL losses, call counts."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+from tensordict import TensorDict
+from tensordict.nn import TensorDictModule
+from torch import nn
+from torchrl.data import Bounded
+from torchrl.modules import MLP, Actor, ValueOperator
+from torchrl.objectives import DDPGLoss, SoftUpdate, TD3Loss
+
+from torchrl_rave import (
+    MVEEstimator,
+    RAVEValueEstimator,
+    STEVEEstimator,
+    ValueExpansionEstimator,
+    WorldModelEnsemble,
+    make_value_expansion_estimator,
+)
+
+S, A = 3, 2
+
+
+def world_model(N=4, seed=0):
+    torch.manual_seed(seed)
+    wm = WorldModelEnsemble(
+        S, A, num_models=N, transition_cells=16, transition_layers=3, reward_cells=16,
+        reward_layers=3, termination_cells=16, termination_layers=3,
+    )
+    g = torch.Generator().manual_seed(seed)
+    wm.update_normalizers(torch.randn(64, S, generator=g), torch.rand(64, A, generator=g),
+                          torch.randn(64, S, generator=g), torch.randn(64, generator=g))
+    return wm
+
+
+def actor_net():
+    return Actor(nn.Sequential(MLP(in_features=S, out_features=A, num_cells=[16]), nn.Tanh()))
+
+
+def critic_net():
+    return ValueOperator(MLP(in_features=S + A, out_features=1, num_cells=[16]), in_keys=["observation", "action"])
+
+
+def batch(B=8, terminal=(), seed=1):
+    g = torch.Generator().manual_seed(seed)
+    terminated = torch.zeros(B, 1, dtype=torch.bool)
+    for b in terminal:
+        terminated[b] = True
+    return TensorDict(
+        observation=torch.randn(B, S, generator=g),
+        action=torch.rand(B, A, generator=g) * 2 - 1,
+        next=TensorDict(
+            observation=torch.randn(B, S, generator=g),
+            reward=torch.randn(B, 1, generator=g),
+            done=terminated.clone(),
+            terminated=terminated,
+            batch_size=[B],
+        ),
+        batch_size=[B],
+    )
+
+
+def ddpg_loss():
+    torch.manual_seed(3)
+    loss = DDPGLoss(actor_net(), critic_net(), delay_actor=True, delay_value=True)
+    SoftUpdate(loss, tau=0.05)
+    return loss
+
+
+def td3_loss(K=4):
+    torch.manual_seed(3)
+    loss = TD3Loss(actor_net(), critic_net(), action_spec=Bounded(-1, 1, (A,)), num_qvalue_nets=K)
+    SoftUpdate(loss, tau=0.05)
+    return loss
+
+
+def perturb(params, scale=0.1):
+    """Target networks equal to the online ones hide bugs that mix them up."""
+    with torch.no_grad():
+        for p in params.values(True, True):
+            p.add_(scale * torch.randn_like(p))
+
+
+class TestTD0Equivalence:
+    """H_max = 0 and alpha = 0 is the TD(0) target of the same critic."""
+
+    @pytest.mark.parametrize("N", [1, 4])
+    @pytest.mark.parametrize("cls", [RAVEValueEstimator, STEVEEstimator, MVEEstimator])
+    def test_ddpg_td0(self, N, cls):
+        loss = ddpg_loss()
+        perturb(loss.target_value_network_params)
+        perturb(loss.target_actor_network_params)
+        data = batch(B=16, terminal=(2, 5))
+        td0 = loss.value_estimator.value_estimate(data.clone(), target_params=loss._cached_target_params)
+        kw = {"alpha": 0.0, "adaptive_alpha": False} if cls is RAVEValueEstimator else {}
+        loss.make_value_estimator(cls.for_loss(loss, world_model=world_model(N), gamma=0.99, horizon=0, **kw))
+        ours = loss.value_estimator.value_estimate(data.clone(), target_params=loss._cached_target_params)
+        if N == 1:  # a single candidate: bit-for-bit the same arithmetic
+            assert torch.equal(ours, td0)
+        else:
+            torch.testing.assert_close(ours, td0, rtol=1e-6, atol=1e-6)
+        # ... and without explicit params it reads the loss's own target parameters
+        torch.testing.assert_close(loss.value_estimator.value_estimate(data.clone()), ours)
+
+
+def naive_target(wm, actor, critic, critic_params, data, gamma, H, alpha, mix):
+    """Member by member, candidate by candidate, with the world model in mean mode."""
+    N = wm.num_models
+    K = critic_params.batch_size[0]
+    obs1 = data["next", "observation"]
+    r = data["next", "reward"].squeeze(-1)
+    d = data["next", "terminated"].squeeze(-1).float()
+    pi = lambda s: actor(TensorDict(observation=s, batch_size=s.shape[:-1]))["action"]  # noqa: E731
+
+    def q(k, s, a):
+        with critic_params[k].to_module(critic):
+            return critic(TensorDict(observation=s, action=a, batch_size=s.shape[:-1]))["state_action_value"].squeeze(-1)
+
+    traj = []  # per member i: states, actions, continuation
+    for i in range(N):
+        s, a = obs1, pi(obs1)
+        states, actions, cont = [s], [a], [1 - d]
+        for _ in range(H):
+            s = wm.step(s, a, sample=False)[i]
+            a = pi(s)
+            states.append(s)
+            actions.append(a)
+            cont.append(cont[-1] * (1 - wm.termination_prob(s)[i].squeeze(-1)))
+        traj.append((states, actions, cont))
+    means, variances = [], []
+    for Hh in range(H + 1):
+        cands = []
+        for i in range(N):
+            states, actions, cont = traj[i]
+            for j in range(N):
+                for k in range(K):
+                    T = r.clone()
+                    for h in range(1, Hh + 1):
+                        rj = wm.reward(states[h - 1], actions[h - 1], states[h], sample=False)[j].squeeze(-1)
+                        T = T + gamma**h * cont[h - 1] * rj
+                    T = T + gamma ** (Hh + 1) * cont[Hh] * q(k, states[Hh], actions[Hh])
+                    cands.append(T)
+        cands = torch.stack(cands)
+        means.append(cands.mean(0))
+        variances.append(cands.var(0, unbiased=False))
+    mean, var = torch.stack(means, -1), torch.stack(variances, -1)
+    clb = mean - alpha.unsqueeze(-1) * var.sqrt()
+    if mix == "fixed":
+        return clb[:, H]
+    w = 1 / (var + 1e-8)
+    return (w * clb).sum(-1) / w.sum(-1)
+
+
+class TestAgainstNaiveRollout:
+    @pytest.mark.parametrize("N,K,H", [(1, 1, 1), (3, 2, 2), (4, 4, 3)])
+    @pytest.mark.parametrize("alpha_mode", ["constant", "adaptive"])
+    def test_mean_rollout_k_critic_ensemble(self, N, K, H, alpha_mode):
+        wm = world_model(N)
+        actor = actor_net()
+        critics = [critic_net() for _ in range(K)]
+        params = TensorDict.from_modules(*critics, as_module=True)
+        est = ValueExpansionEstimator(
+            world_model=wm, actor_network=actor, value_network=critics[0], value_params=params,
+            gamma=0.9, horizon=H, rollout="mean", alpha=0.7, alpha_mode=alpha_mode,
+        )
+        data = batch(B=6, terminal=(1,))
+        ours = est.value_estimate(data).squeeze(-1)
+        if alpha_mode == "constant":
+            alpha = torch.full((6,), 0.7)
+        else:
+            alpha = (0.7 * (1 - wm.mean_prediction_error(data["observation"], data["action"], data["next", "observation"]))).clamp_min(0)
+        torch.testing.assert_close(data["rave_alpha"].squeeze(-1), alpha)
+        with torch.no_grad():
+            ref = naive_target(wm, actor, critics[0], params, data, 0.9, H, alpha, "inverse_variance")
+        torch.testing.assert_close(ours, ref, rtol=1e-5, atol=1e-5)
+
+    def test_mve_fixed_horizon(self):
+        wm, actor, critic = world_model(3), actor_net(), critic_net()
+        params = TensorDict.from_module(critic, as_module=True).expand(1).clone()
+        est = MVEEstimator(world_model=wm, actor_network=actor, value_network=critic, value_params=params,
+                           gamma=0.8, horizon=2)
+        data = batch(B=5)
+        with torch.no_grad():
+            ref = naive_target(wm, actor, critic, params, data, 0.8, 2, torch.zeros(5), "fixed")
+        torch.testing.assert_close(est.value_estimate(data).squeeze(-1), ref, rtol=1e-5, atol=1e-5)
+
+
+class LineModel:
+    """A hand-checkable 1-D "world model": s' = s + a, r = s', p(done) = p."""
+
+    observation_dim = action_dim = 1
+
+    def __init__(self, num_models=1, done_prob=0.0):
+        self.num_models = num_models
+        self.done_prob = done_prob
+
+    def _members(self, x, per_member):
+        return x if per_member else x.expand(self.num_models, *x.shape)
+
+    def step(self, s, a, *, sample, per_member=False):
+        return self._members(s + a, per_member)
+
+    def reward(self, s, a, s2, *, sample, per_member=False):
+        return self._members(s2, per_member)
+
+    def termination_prob(self, s2, *, per_member=False):
+        return self._members(torch.full_like(s2, self.done_prob), per_member)
+
+
+def line_estimator(cls=MVEEstimator, done_prob=0.0, **kw):
+    actor = TensorDictModule(lambda o: torch.ones_like(o), in_keys=["observation"], out_keys=["action"])
+    critic = TensorDictModule(lambda o, a: 10 * o + a, in_keys=["observation", "action"], out_keys=["state_action_value"])
+    return cls(world_model=LineModel(done_prob=done_prob), actor_network=actor, value_network=critic, gamma=0.5, **kw)
+
+
+def line_batch(terminated=False):
+    t = torch.tensor([[terminated]])
+    return TensorDict(
+        observation=torch.tensor([[1.0]]), action=torch.tensor([[1.0]]),
+        next=TensorDict(observation=torch.tensor([[2.0]]), reward=torch.tensor([[1.0]]),
+                        done=t.clone(), terminated=t, batch_size=[1]),
+        batch_size=[1],
+    )
+
+
+class TestHandComputed:
+    """s_{t+1} = 2, r_t = 1, gamma = 1/2, pi = 1, s' = s + a, r = s', Q(s, a) = 10 s + a."""
+
+    @pytest.mark.parametrize(
+        "H,expected",
+        [
+            (0, 1 + 0.5 * 21),                                  # r + g Q(2, 1)
+            (1, 1 + 0.5 * 3 + 0.25 * 31),                       # r + g r~(3) + g^2 Q(3, 1)
+            (2, 1 + 0.5 * 3 + 0.25 * 4 + 0.125 * 41),           # = 8.625
+        ],
+    )
+    def test_one_member_mve_is_h_step_return(self, H, expected):
+        est = line_estimator(horizon=H)
+        assert est.value_estimate(line_batch()).item() == pytest.approx(expected)
+
+    def test_terminal_real_transition_gives_reward(self):
+        for cls in (MVEEstimator, STEVEEstimator, RAVEValueEstimator):
+            kw = {"adaptive_alpha": False} if cls is RAVEValueEstimator else {}
+            assert line_estimator(cls, horizon=3, **kw).value_estimate(line_batch(terminated=True)).item() == 1.0
+
+    def test_certain_model_termination_cuts_later_terms(self):
+        # p(done) = 1 at every imagined state: only r_t and the first imagined reward remain
+        assert line_estimator(done_prob=1.0, horizon=3).value_estimate(line_batch()).item() == pytest.approx(1 + 0.5 * 3)
+        # STEVE with one member has zero variance everywhere: equal weights over H = 0..3
+        steve = line_estimator(STEVEEstimator, done_prob=1.0, horizon=3)
+        data = line_batch()
+        assert steve.value_estimate(data).item() == pytest.approx((11.5 + 3 * 2.5) / 4)
+        torch.testing.assert_close(data["rave_horizon_weights"], torch.full((1, 4), 0.25))
+
+    def test_terminal_batch_with_neural_ensemble(self):
+        loss = ddpg_loss()
+        loss.make_value_estimator(RAVEValueEstimator.for_loss(loss, world_model=world_model(4), gamma=0.99, horizon=3))
+        data = batch(B=6, terminal=range(6))
+        torch.testing.assert_close(loss.value_estimator.value_estimate(data), data["next", "reward"])
+
+
+class TestZeroVariance:
+    def test_rave_alpha0_equals_steve(self):
+        wm = world_model(4)
+        with torch.no_grad():  # a model with no aleatoric noise: samples are the means
+            for head in (wm.transition, wm.reward_model):
+                head.max_logvar.fill_(-1e4)
+                head.min_logvar.fill_(-1e4)
+        loss = td3_loss(K=4)
+        data = batch(B=10, terminal=(3,))
+        steve = STEVEEstimator.for_loss(loss, world_model=wm, gamma=0.95, horizon=3).value_estimate(data.clone())
+        rave = RAVEValueEstimator.for_loss(
+            loss, world_model=wm, gamma=0.95, horizon=3, alpha=0.0, adaptive_alpha=False
+        ).value_estimate(data.clone())
+        torch.testing.assert_close(rave, steve)
+
+    def test_sampling_changes_rave_with_noise(self):
+        loss = td3_loss(K=2)
+        est = RAVEValueEstimator.for_loss(loss, world_model=world_model(4), gamma=0.95, horizon=3)
+        data = batch()
+        assert not torch.allclose(est.value_estimate(data.clone()), est.value_estimate(data.clone()))
+
+
+class TestLossIntegration:
+    def test_both_doors_install_the_estimator(self):
+        wm = world_model()
+        loss = ddpg_loss()
+        est = RAVEValueEstimator.for_loss(loss, world_model=wm, gamma=0.99)
+        loss.make_value_estimator(est)
+        assert loss.value_estimator is est
+        loss2 = ddpg_loss()
+        est2 = RAVEValueEstimator.for_loss(loss2, world_model=wm, gamma=0.99)
+        loss2.value_estimator = est2
+        assert loss2.value_estimator is est2
+        # the world model is not registered inside the loss
+        ids = {id(p) for p in loss2.parameters()}
+        assert not any(id(p) in ids for p in wm.parameters())
+
+    def test_subclass_door(self):
+        loss = ddpg_loss()
+        loss.make_value_estimator(
+            STEVEEstimator, world_model=world_model(), actor_network=loss.actor_network,
+            value_network=loss.value_network, gamma=0.9,
+        )
+        assert isinstance(loss.value_estimator, STEVEEstimator)
+        out = loss(batch())
+        assert torch.isfinite(out["loss_value"])
+
+    def test_td3_uses_its_critic_ensemble(self):
+        loss = td3_loss(K=3)
+        est = RAVEValueEstimator.for_loss(loss, world_model=world_model(2), gamma=0.99, horizon=1)
+        shapes = []
+        original = est._critic
+
+        def spy(o, a, p):
+            out = original(o, a, p)
+            shapes.append(tuple(out.shape))
+            return out
+
+        est._critic = spy
+        loss.make_value_estimator(est)
+        data = batch(B=5)
+        out = loss(data)
+        assert shapes == [(3, 5 * (1 + 2 * 1))]
+        (out["loss_actor"] + out["loss_qvalue"]).backward()
+
+    def test_reads_soft_updated_target_params(self):
+        loss = ddpg_loss()
+        updater = SoftUpdate(loss, tau=0.5)
+        est = STEVEEstimator.for_loss(loss, world_model=world_model(), gamma=0.9)
+        data = batch()
+        before = est.value_estimate(data.clone())
+        perturb(loss.value_network_params, 1.0)
+        updater.step()
+        after = est.value_estimate(data.clone())
+        assert not torch.allclose(before, after)
+
+    def test_make_by_name(self):
+        loss = ddpg_loss()
+        wm = world_model()
+        assert type(make_value_expansion_estimator("RAVE", loss, world_model=wm, gamma=0.9)) is RAVEValueEstimator
+        est = make_value_expansion_estimator("mve", loss, world_model=wm, gamma=0.9, horizon=2)
+        assert (est.rollout, est.mix, float(est.alpha)) == ("mean", "fixed", 0.0)
+        est = make_value_expansion_estimator("steve", loss, world_model=wm, gamma=0.9)
+        assert (est.rollout, est.mix) == ("mean", "inverse_variance")
+
+
+class TestNoGradientThroughTarget:
+    def test_critic_actor_and_model_get_no_target_gradient(self):
+        wm = world_model()
+        loss = ddpg_loss()
+        loss.make_value_estimator(RAVEValueEstimator.for_loss(loss, world_model=wm, gamma=0.99))
+        data = batch(B=12)
+        torch.manual_seed(11)
+        loss_value, meta = loss.loss_value(data.clone())
+        loss_value.backward()
+        assert all(p.grad is None for p in wm.parameters())
+        assert all(p.grad is None for p in loss.actor_network_params.values(True, True))
+        assert all(p.grad is None for p in loss.target_value_network_params.values(True, True))
+        assert all(p.grad is None for p in loss.target_actor_network_params.values(True, True))
+        # the critic's gradient is that of (Q(s, a) - const)^2: the target is a constant
+        target = meta["target_value"]
+        assert not target.requires_grad
+        critic = loss.value_network
+        params = loss.value_network_params.detach().clone().requires_grad_()
+        with params.to_module(critic):
+            q = critic(data.select("observation", "action"))["state_action_value"].squeeze(-1)
+        (q - target).pow(2).mean().backward()
+        for name, p in loss.value_network_params.items(True, True):
+            torch.testing.assert_close(p.grad, params.get(name).grad)
+
+
+class TestCallCounts:
+    """O(N H) transition, O(N^2 H) reward, O(N K H) critic rows: never N^3 network work."""
+
+    @pytest.mark.parametrize("N,K,H", [(1, 1, 0), (3, 1, 2), (4, 4, 3), (5, 2, 1)])
+    def test_rows_per_network(self, N, K, H):
+        wm = world_model(N)
+        loss = td3_loss(K)
+        est = RAVEValueEstimator.for_loss(loss, world_model=wm, gamma=0.9, horizon=H, adaptive_alpha=False)
+        M = 7
+        counts = {}
+
+        def counter(name):
+            def hook(module, args, out):
+                t = out[0] if isinstance(out, tuple) else out
+                rows = t.batch_size.numel() if isinstance(t, TensorDict) else t.shape[:-1].numel()
+                calls, total = counts.get(name, (0, 0))
+                counts[name] = (calls + 1, total + rows)
+
+            return hook
+
+        handles = [
+            wm.transition.register_forward_hook(counter("transition")),
+            wm.reward_model.register_forward_hook(counter("reward")),
+            wm.termination.register_forward_hook(counter("termination")),
+            loss.actor_network.register_forward_hook(counter("actor")),
+            loss.qvalue_network.register_forward_hook(counter("critic")),
+        ]
+        est.value_estimate(batch(B=M))
+        for h in handles:
+            h.remove()
+        assert counts.get("transition", (0, 0)) == (H, N * M * H)
+        assert counts["reward"] == (1, N * N * M * H)
+        assert counts["termination"] == (1, N * M * H)
+        assert counts["actor"] == (H + 1, M * (1 + N * H))
+        # one vmapped call over the K stacked critics (the hook sees one member's rows)
+        assert counts["critic"] == (1, M * (1 + N * H))
+        assert N * N * M * H <= N**2 * M * max(H, 1) < N**3 * K * M * (H + 1) or N == 1
+
+
+class TestBadInput:
+    def est(self, **kw):
+        loss = ddpg_loss()
+        return RAVEValueEstimator.for_loss(loss, world_model=world_model(), gamma=0.9, **kw)
+
+    def test_observation_size_mismatch(self):
+        data = batch()
+        data["next", "observation"] = torch.randn(8, S + 1)
+        with pytest.raises(ValueError, match=r"'next', 'observation'.*last dimension 3"):
+            self.est().value_estimate(data)
+
+    def test_action_size_mismatch(self):
+        data = batch()
+        data["action"] = torch.randn(8, A + 2)
+        with pytest.raises(ValueError, match=r"'action'.*last dimension 2"):
+            self.est().value_estimate(data)
+
+    @pytest.mark.parametrize("key", ["observation", ("next", "reward"), ("next", "observation")])
+    def test_nan(self, key):
+        data = batch()
+        data[key][0, 0] = math.nan
+        with pytest.raises(ValueError, match="NaN"):
+            self.est().value_estimate(data)
+
+    @pytest.mark.parametrize(
+        "kw,match",
+        [
+            ({"horizon": -1}, "horizon"),
+            ({"alpha": -0.5}, "alpha"),
+            ({"gamma": 1.5}, "gamma"),
+            ({"alpha_error_scale": 0.0}, "alpha_error_scale"),
+        ],
+    )
+    def test_bad_hyperparameters(self, kw, match):
+        args = {"gamma": 0.9, **kw}
+        with pytest.raises(ValueError, match=match):
+            RAVEValueEstimator.for_loss(ddpg_loss(), world_model=world_model(), **args)
+
+    def test_bad_modes_and_ensemble_size(self):
+        with pytest.raises(ValueError, match="rollout"):
+            ValueExpansionEstimator(world_model=world_model(), actor_network=actor_net(),
+                                    value_network=critic_net(), gamma=0.9, rollout="median")
+        with pytest.raises(ValueError, match="num_models"):
+            WorldModelEnsemble(S, A, num_models=0)
+        with pytest.raises(ValueError, match="world_model"):
+            RAVEValueEstimator.for_loss(ddpg_loss(), gamma=0.9)
+
+    def test_tensordict_alpha_needs_the_key(self):
+        est = self.est(alpha_mode="tensordict")
+        with pytest.raises(ValueError, match="rave_alpha"):
+            est.value_estimate(batch())
