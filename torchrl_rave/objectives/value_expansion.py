@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import logging
 from dataclasses import dataclass
 from typing import Literal
 
@@ -22,6 +23,8 @@ __all__ = [
     "RAVEValueEstimator",
     "make_value_expansion_estimator",
 ]
+
+logger = logging.getLogger(__name__)
 
 RolloutMode = Literal["sample", "mean"]
 MixMode = Literal["inverse_variance", "fixed"]
@@ -58,6 +61,16 @@ class ValueExpansionEstimator(ValueEstimatorBase):
 
     The world model and the networks are held by reference, not registered as
     submodules, so they do not appear twice in the loss's ``parameters()``.
+
+    Diagnostics (per-sample alpha, ``V_H`` and the horizon weights) are written into the
+    input tensordict under the ``alpha``/``horizon_variance``/``horizon_weights`` keys and
+    kept as :attr:`diagnostics` (a TensorDict) for losses that work on a copy of the batch.
+
+    .. note:: With a single critic (``K = 1``, e.g. a stock one-critic ``DDPGLoss``) all
+        ``H = 0`` candidates are the same number, so ``V_0 = 0`` and the inverse-variance
+        mix puts (almost) all weight on ``H = 0``: STEVE and RAVE then reduce to TD(0).
+        The paper uses ``K = N = 4`` critics; use ``TD3Loss(num_qvalue_nets=K)`` or pass
+        stacked ``value_params``. A warning is logged once when this happens.
 
     Keyword Args:
         world_model (WorldModelEnsemble): the probabilistic ensemble (any object with the
@@ -194,6 +207,8 @@ class ValueExpansionEstimator(ValueEstimatorBase):
         self.__dict__["_value_params"] = value_params
         self.__dict__["_loss"] = None
         self.__dict__["_loss_param_names"] = None
+        self._warned_single_critic = False
+        self.__dict__["diagnostics"] = None
 
     # ----------------------------------------------------------------- wiring
     @classmethod
@@ -378,6 +393,13 @@ class ValueExpansionEstimator(ValueEstimatorBase):
         flat_a = torch.cat([actions[0, :, 0], actions[:, :, 1:].reshape(-1, A)])
         q = self._critic(flat_s, flat_a, value_params)  # [K, M + N*M*H]
         K = q.shape[0]
+        if K == 1 and H > 0 and self.mix == "inverse_variance" and not self._warned_single_critic:
+            self._warned_single_critic = True
+            logger.warning(
+                "%s with a single critic: V_0 = 0, so the inverse-variance mix reduces to TD(0). "
+                "Use K >= 2 critics (TD3Loss(num_qvalue_nets=K) or stacked value_params).",
+                type(self).__name__,
+            )
         q0 = q[:, :M].reshape(K, 1, M, 1).expand(K, N, M, 1)
         values = torch.cat([q0, q[:, M:].reshape(K, N, M, H)], -1).transpose(0, 1)  # [Ni, K, M, H+1]
 
@@ -391,9 +413,17 @@ class ValueExpansionEstimator(ValueEstimatorBase):
         )
 
         k = self.tensor_keys
-        tensordict.set(k.alpha, alpha.expand(M).reshape(*batch_shape, 1))
-        tensordict.set(k.horizon_variance, var.reshape(*batch_shape, H + 1))
-        tensordict.set(k.horizon_weights, weights.reshape(*batch_shape, H + 1))
+        diagnostics = TensorDict(
+            {
+                k.alpha: alpha.expand(M).reshape(*batch_shape, 1),
+                k.horizon_variance: var.reshape(*batch_shape, H + 1),
+                k.horizon_weights: weights.reshape(*batch_shape, H + 1),
+            },
+            batch_size=batch_shape,
+        )
+        tensordict.update(diagnostics)
+        # Losses that pass a shallow copy (TD3Loss) drop what we write; keep the last ones here.
+        self.__dict__["diagnostics"] = diagnostics
         return target.reshape(*batch_shape, 1)
 
     def forward(
