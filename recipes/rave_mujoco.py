@@ -1,7 +1,7 @@
 """Train RAVE (DDPG base, K-critic ensemble, probabilistic world-model ensemble) on MuJoCo.
 
-    python recipes/rave_mujoco.py                         # InvertedPendulum-v5, CPU-sized
-    python recipes/rave_mujoco.py env.name=Hopper-v5 collector.total_frames=100000
+python recipes/rave_mujoco.py                         # InvertedPendulum-v5, CPU-sized
+python recipes/rave_mujoco.py env.name=Hopper-v5 collector.total_frames=100000
 """
 
 from __future__ import annotations
@@ -11,9 +11,9 @@ import sys
 import time
 
 import hydra
-from hydra.core.hydra_config import HydraConfig
 import torch
 import tqdm
+from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig
 from torchrl.record.loggers import generate_exp_name, get_logger
 
@@ -49,8 +49,12 @@ def main(cfg: DictConfig) -> float:
     collector = make_collector(cfg, env, exploration, device)
     rb = make_replay_buffer(cfg, device)
 
-    opt_actor = torch.optim.Adam(loss.actor_network_params.values(True, True), lr=cfg.optim.lr_actor)
-    opt_critic = torch.optim.Adam(loss.qvalue_network_params.values(True, True), lr=cfg.optim.lr_critic)
+    opt_actor = torch.optim.Adam(
+        loss.actor_network_params.values(True, True), lr=cfg.optim.lr_actor
+    )
+    opt_critic = torch.optim.Adam(
+        loss.qvalue_network_params.values(True, True), lr=cfg.optim.lr_critic
+    )
     opt_wm = torch.optim.Adam(world_model.parameters(), lr=cfg.world_model.lr)
 
     def update_world_model(batch):
@@ -94,14 +98,16 @@ def main(cfg: DictConfig) -> float:
                 wm_out = update_world_model(rb.sample())
                 out = update(rb.sample())
             diag = loss.value_estimator.diagnostics
-            metrics.update({
-                "train/loss_critic": out["loss_qvalue"].item(),
-                "train/loss_actor": out["loss_actor"].item(),
-                "train/wm_transition_nll": wm_out["transition_nll"].item(),
-                "train/wm_transition_mse": wm_out["transition_mse"].item(),
-                "train/wm_reward_mse": wm_out["reward_mse"].item(),
-                "train/alpha": diag["rave_alpha"].mean().item(),
-            })
+            metrics.update(
+                {
+                    "train/loss_critic": out["loss_qvalue"].item(),
+                    "train/loss_actor": out["loss_actor"].item(),
+                    "train/wm_transition_nll": wm_out["transition_nll"].item(),
+                    "train/wm_transition_mse": wm_out["transition_mse"].item(),
+                    "train/wm_reward_mse": wm_out["reward_mse"].item(),
+                    "train/alpha": diag["rave_alpha"].mean().item(),
+                }
+            )
         collector.update_policy_weights_()
         metrics["time/fps"] = frames / (time.time() - start)
         if logger is not None:
@@ -116,8 +122,10 @@ def main(cfg: DictConfig) -> float:
         for k, v in results.items():
             logger.log_scalar(k, v, step=frames)
     eval_return = results["eval/return"]
-    print(f"{cfg.env.name}: {frames} frames, eval return {eval_return:.1f} ± {results['eval/return_std']:.1f} "
-          f"over {cfg.eval.episodes} episodes, {time.time() - start:.0f} s")
+    print(
+        f"{cfg.env.name}: {frames} frames, eval return {eval_return:.1f} ± {results['eval/return_std']:.1f} "
+        f"over {cfg.eval.episodes} episodes, {time.time() - start:.0f} s"
+    )
     return eval_return
 
 

@@ -4,13 +4,13 @@ from __future__ import annotations
 
 import torch
 from omegaconf import DictConfig
+from tensordict.nn import TensorDictSequential
 from torch import nn
 from torchrl.collectors import Collector
 from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
 from torchrl.envs import DoubleToFloat, GymEnv, RewardSum, StepCounter, TransformedEnv
 from torchrl.modules import MLP, Actor, AdditiveGaussianModule, ValueOperator
 from torchrl.objectives import SoftUpdate, TD3Loss
-from tensordict.nn import TensorDictSequential
 
 from torchrl_rave import WorldModelEnsemble, WorldModelLoss, make_value_expansion_estimator
 
@@ -20,7 +20,9 @@ def make_env(cfg: DictConfig, device: torch.device) -> TransformedEnv:
 
     if cfg.env.name not in gym.registry:
         mujoco = sorted(k for k in gym.registry if k.endswith("-v5"))
-        raise ValueError(f"env.name={cfg.env.name!r} is not a registered gymnasium id; MuJoCo ids: {mujoco}")
+        raise ValueError(
+            f"env.name={cfg.env.name!r} is not a registered gymnasium id; MuJoCo ids: {mujoco}"
+        )
     env = TransformedEnv(GymEnv(cfg.env.name, device=device), DoubleToFloat())
     env.append_transform(StepCounter())
     env.append_transform(RewardSum())
@@ -34,19 +36,31 @@ def make_actor_critic(cfg: DictConfig, env) -> tuple[Actor, ValueOperator, Tenso
     hidden = cfg.network.num_layers - 1  # paper: 4 FC layers including the output layer
     actor = Actor(
         nn.Sequential(
-            MLP(in_features=S, out_features=A, num_cells=[cfg.network.actor_cells] * hidden, activation_class=nn.ReLU),
+            MLP(
+                in_features=S,
+                out_features=A,
+                num_cells=[cfg.network.actor_cells] * hidden,
+                activation_class=nn.ReLU,
+            ),
             nn.Tanh(),
         ),
         spec=env.action_spec,
     )
     critic = ValueOperator(
-        MLP(in_features=S + A, out_features=1, num_cells=[cfg.network.critic_cells] * hidden, activation_class=nn.ReLU),
+        MLP(
+            in_features=S + A,
+            out_features=1,
+            num_cells=[cfg.network.critic_cells] * hidden,
+            activation_class=nn.ReLU,
+        ),
         in_keys=["observation", "action"],
     )
     exploration = TensorDictSequential(
         actor,
         AdditiveGaussianModule(
-            spec=env.action_spec, sigma_init=cfg.exploration.sigma, sigma_end=cfg.exploration.sigma,
+            spec=env.action_spec,
+            sigma_init=cfg.exploration.sigma,
+            sigma_end=cfg.exploration.sigma,
             annealing_num_steps=1,
         ),
     )
@@ -56,10 +70,15 @@ def make_actor_critic(cfg: DictConfig, env) -> tuple[Actor, ValueOperator, Tenso
 def make_world_model(cfg: DictConfig, env) -> WorldModelEnsemble:
     w = cfg.world_model
     return WorldModelEnsemble.from_specs(
-        env.observation_spec, env.action_spec, num_models=w.num_models,
-        transition_cells=w.transition_cells, transition_layers=w.transition_layers,
-        reward_cells=w.reward_cells, reward_layers=w.reward_layers,
-        termination_cells=w.termination_cells, termination_layers=w.termination_layers,
+        env.observation_spec,
+        env.action_spec,
+        num_models=w.num_models,
+        transition_cells=w.transition_cells,
+        transition_layers=w.transition_layers,
+        reward_cells=w.reward_cells,
+        reward_layers=w.reward_layers,
+        termination_cells=w.termination_cells,
+        termination_layers=w.termination_layers,
     )
 
 
@@ -67,22 +86,32 @@ def make_losses(cfg: DictConfig, env, actor, critic, world_model):
     # TD3Loss holds K stacked critics; without target smoothing noise it is DDPG on a
     # K-critic ensemble, and the RAVE estimator replaces its target.
     loss = TD3Loss(
-        actor, critic, action_spec=env.action_spec, num_qvalue_nets=cfg.network.num_critics,
-        policy_noise=0.0, noise_clip=0.0, loss_function="l2",
+        actor,
+        critic,
+        action_spec=env.action_spec,
+        num_qvalue_nets=cfg.network.num_critics,
+        policy_noise=0.0,
+        noise_clip=0.0,
+        loss_function="l2",
     )
     updater = SoftUpdate(loss, tau=cfg.optim.tau)
     e = cfg.estimator
     kwargs = dict(world_model=world_model, gamma=cfg.optim.gamma, horizon=e.horizon)
     if e.name == "rave":
-        kwargs.update(alpha=e.alpha, adaptive_alpha=e.adaptive_alpha, alpha_error_scale=e.alpha_error_scale)
+        kwargs.update(
+            alpha=e.alpha, adaptive_alpha=e.adaptive_alpha, alpha_error_scale=e.alpha_error_scale
+        )
     loss.make_value_estimator(make_value_expansion_estimator(e.name, loss, **kwargs))
     return loss, updater, WorldModelLoss(world_model)
 
 
 def make_collector(cfg: DictConfig, env, policy, device) -> Collector:
     return Collector(
-        env, policy, frames_per_batch=cfg.collector.frames_per_batch,
-        total_frames=cfg.collector.total_frames, init_random_frames=cfg.collector.init_random_frames,
+        env,
+        policy,
+        frames_per_batch=cfg.collector.frames_per_batch,
+        total_frames=cfg.collector.total_frames,
+        init_random_frames=cfg.collector.init_random_frames,
         device=device,
     )
 

@@ -5,10 +5,10 @@ from __future__ import annotations
 import pytest
 import torch
 from tensordict import TensorDict
+from test_value_expansion import actor_net, batch, critic_net, ddpg_loss, world_model
 from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
 
 from torchrl_rave import AdaptiveAlpha, RAVEValueEstimator, ValueExpansionEstimator
-from test_value_expansion import actor_net, batch, critic_net, ddpg_loss, world_model
 
 
 class TestAdaptiveAlpha:
@@ -30,13 +30,20 @@ class TestAdaptiveAlpha:
         with torch.no_grad():
             pred = wm.step(data["observation"], data["action"], sample=False).mean(0)
         data["next", "observation"] = pred  # the model's own mean prediction: zero error
-        torch.testing.assert_close(AdaptiveAlpha(wm, alpha=2.0)(data)["rave_alpha"], torch.full((4, 1), 2.0), rtol=1e-4, atol=1e-4)
+        torch.testing.assert_close(
+            AdaptiveAlpha(wm, alpha=2.0)(data)["rave_alpha"],
+            torch.full((4, 1), 2.0),
+            rtol=1e-4,
+            atol=1e-4,
+        )
         data["next", "observation"] = pred + 100.0
         assert AdaptiveAlpha(wm, alpha=2.0)(data)["rave_alpha"].eq(0).all()
 
     def test_replay_buffer_transform_and_estimator_modes(self):
         wm = world_model(3)
-        rb = TensorDictReplayBuffer(storage=LazyTensorStorage(100), transform=AdaptiveAlpha(wm, alpha=1.5), batch_size=16)
+        rb = TensorDictReplayBuffer(
+            storage=LazyTensorStorage(100), transform=AdaptiveAlpha(wm, alpha=1.5), batch_size=16
+        )
         rb.extend(batch(B=50))
         sample = rb.sample()
         assert sample["rave_alpha"].shape == (16, 1)
@@ -44,7 +51,9 @@ class TestAdaptiveAlpha:
         # "adaptive" computes the same alpha itself; "tensordict" reads the transform's
         torch.manual_seed(0)
         adaptive = RAVEValueEstimator.for_loss(loss, world_model=wm, gamma=0.9, alpha=1.5)
-        from_td = RAVEValueEstimator.for_loss(loss, world_model=wm, gamma=0.9, alpha=1.5, alpha_mode="tensordict")
+        from_td = RAVEValueEstimator.for_loss(
+            loss, world_model=wm, gamma=0.9, alpha=1.5, alpha_mode="tensordict"
+        )
         a_td, b_td = sample.clone(), sample.clone()
         del a_td["rave_alpha"]
         torch.manual_seed(1)
@@ -58,8 +67,14 @@ class TestAdaptiveAlpha:
         # K = 2 critics: with one critic V_0 = 0 and the mix ignores alpha (see the estimator docs)
         wm, actor, critics = world_model(2), actor_net(), [critic_net(), critic_net()]
         params = TensorDict.from_modules(*critics, as_module=True)
-        kw = dict(world_model=wm, actor_network=actor, value_network=critics[0], value_params=params,
-                  gamma=0.9, rollout="mean")
+        kw = dict(
+            world_model=wm,
+            actor_network=actor,
+            value_network=critics[0],
+            value_params=params,
+            gamma=0.9,
+            rollout="mean",
+        )
         data = batch(B=6)
         const = ValueExpansionEstimator(alpha=0.8, **kw).value_estimate(data.clone())
         data["rave_alpha"] = torch.full((6, 1), 0.8)
@@ -70,7 +85,9 @@ class TestAdaptiveAlpha:
         lower = ValueExpansionEstimator(alpha_mode="tensordict", **kw).value_estimate(data)
         assert (lower <= const + 1e-6).all() and (lower < const - 1e-6).any()
 
-    @pytest.mark.parametrize("kw,match", [({"alpha": -1.0}, "alpha"), ({"error_scale": 0.0}, "error_scale")])
+    @pytest.mark.parametrize(
+        "kw,match", [({"alpha": -1.0}, "alpha"), ({"error_scale": 0.0}, "error_scale")]
+    )
     def test_bad_arguments(self, kw, match):
         with pytest.raises(ValueError, match=match):
             AdaptiveAlpha(world_model(1), **kw)

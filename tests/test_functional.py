@@ -54,7 +54,7 @@ def naive_mix(mean, var, alpha, eps):
         a = float(alpha[b]) if torch.is_tensor(alpha) else alpha
         ws = [1.0 / (float(var[b, H]) + eps) for H in range(H1)]
         clbs = [float(mean[b, H]) - a * math.sqrt(float(var[b, H])) for H in range(H1)]
-        out[b] = sum(w * c for w, c in zip(ws, clbs)) / sum(ws)
+        out[b] = sum(w * c for w, c in zip(ws, clbs, strict=True)) / sum(ws)
     return out
 
 
@@ -80,7 +80,9 @@ CASES = [
 class TestCandidateTargets:
     @pytest.mark.parametrize("Ni,Nj,K,B,Hmax", CASES)
     def test_candidates_equal_naive_loop(self, Ni, Nj, K, B, Hmax):
-        reward, rewards, values, terminated, done_prob = random_case(Ni, Nj, K, B, Hmax, seed=Ni + 10 * Hmax)
+        reward, rewards, values, terminated, done_prob = random_case(
+            Ni, Nj, K, B, Hmax, seed=Ni + 10 * Hmax
+        )
         gamma = 0.9
         cont = VF.continuation_weights(terminated, done_prob)
         T = VF.candidate_targets(reward, rewards, values, cont, gamma)
@@ -107,7 +109,9 @@ class TestCandidateTargets:
     def test_terminal_transition_gives_reward_only(self):
         reward, rewards, values, _, done_prob = random_case(3, 3, 2, 4, 3, seed=5)
         terminated = torch.ones(4, dtype=torch.float64)
-        T = VF.candidate_targets(reward, rewards, values, VF.continuation_weights(terminated, done_prob), 0.99)
+        T = VF.candidate_targets(
+            reward, rewards, values, VF.continuation_weights(terminated, done_prob), 0.99
+        )
         torch.testing.assert_close(T, reward.view(1, 1, 1, 4, 1).expand_as(T))
 
     def test_certain_model_termination_cuts_later_terms(self):
@@ -115,7 +119,9 @@ class TestCandidateTargets:
         terminated = torch.zeros(3, dtype=torch.float64)
         done_prob = torch.ones(2, 3, 3, dtype=torch.float64)  # every imagined state is terminal
         gamma = 0.9
-        T = VF.candidate_targets(reward, rewards, values, VF.continuation_weights(terminated, done_prob), gamma)
+        T = VF.candidate_targets(
+            reward, rewards, values, VF.continuation_weights(terminated, done_prob), gamma
+        )
         first_step = reward.view(1, 1, 1, 3) + gamma * rewards[:, :, None, :, 0]
         for H in range(1, 4):
             torch.testing.assert_close(T[..., H], first_step.expand_as(T[..., H]))
@@ -125,23 +131,31 @@ class TestTargets:
     @pytest.mark.parametrize("Ni,Nj,K,B,Hmax", CASES)
     @pytest.mark.parametrize("alpha", [0.0, 1.5, "per-sample"])
     def test_steve_rave_equal_naive(self, Ni, Nj, K, B, Hmax, alpha):
-        reward, rewards, values, terminated, done_prob = random_case(Ni, Nj, K, B, Hmax, seed=Nj + 7 * K)
+        reward, rewards, values, terminated, done_prob = random_case(
+            Ni, Nj, K, B, Hmax, seed=Nj + 7 * K
+        )
         gamma, eps = 0.95, 1e-8
         if alpha == "per-sample":
             alpha = torch.rand(B, dtype=torch.float64) * 2
-        T = VF.candidate_targets(reward, rewards, values, VF.continuation_weights(terminated, done_prob), gamma)
+        T = VF.candidate_targets(
+            reward, rewards, values, VF.continuation_weights(terminated, done_prob), gamma
+        )
         mean, var = VF.horizon_moments(T)
         ref = naive_candidates(reward, rewards, values, terminated, done_prob, gamma)
         ref_mean, ref_var = naive_moments(ref, Ni, Nj, K, B, Hmax)
         torch.testing.assert_close(mean, ref_mean)
         torch.testing.assert_close(var, ref_var)
-        target, weights = VF.expansion_target(mean, var, mix="inverse_variance", alpha=alpha, eps=eps)
+        target, weights = VF.expansion_target(
+            mean, var, mix="inverse_variance", alpha=alpha, eps=eps
+        )
         torch.testing.assert_close(target, naive_mix(ref_mean, ref_var, alpha, eps))
         torch.testing.assert_close(weights.sum(-1), torch.ones(B, dtype=torch.float64))
 
     def test_mve_is_fixed_horizon_mean(self):
         reward, rewards, values, terminated, done_prob = random_case(3, 3, 3, 4, 3, seed=9)
-        T = VF.candidate_targets(reward, rewards, values, VF.continuation_weights(terminated, done_prob), 0.9)
+        T = VF.candidate_targets(
+            reward, rewards, values, VF.continuation_weights(terminated, done_prob), 0.9
+        )
         mean, var = VF.horizon_moments(T)
         for H in range(4):
             target, weights = VF.expansion_target(mean, var, mix="fixed", horizon=H)
@@ -177,7 +191,9 @@ class TestRollout:
             base = s if per_member else s.expand(2, *s.shape)
             return base + a + torch.tensor([1.0, 2.0]).view(2, 1, 1)
 
-        states, actions = VF.imagined_rollout(torch.zeros(3, 1), lambda s: torch.ones_like(s), step, 2, 2)
+        states, actions = VF.imagined_rollout(
+            torch.zeros(3, 1), lambda s: torch.ones_like(s), step, 2, 2
+        )
         assert calls == [((3, 1), False), ((2, 3, 1), True)]
         # member 0 moves by 1 + 1 per step, member 1 by 1 + 2
         torch.testing.assert_close(states[0, 0, :, 0], torch.tensor([0.0, 2.0, 4.0]))

@@ -29,12 +29,23 @@ def build(env, N=4, width=32):
     S = env.observation_spec["observation"].shape[-1]
     A = env.action_spec.shape[-1]
     wm = WorldModelEnsemble.from_specs(
-        env.observation_spec, env.action_spec, num_models=N, transition_cells=width,
-        transition_layers=3, reward_cells=width, reward_layers=2, termination_cells=width, termination_layers=2,
+        env.observation_spec,
+        env.action_spec,
+        num_models=N,
+        transition_cells=width,
+        transition_layers=3,
+        reward_cells=width,
+        reward_layers=2,
+        termination_cells=width,
+        termination_layers=2,
     )
-    actor = Actor(torch.nn.Sequential(MLP(in_features=S, out_features=A, num_cells=[width]), torch.nn.Tanh()),
-                  spec=env.action_spec)
-    qvalue = ValueOperator(MLP(in_features=S + A, out_features=1, num_cells=[width]), in_keys=["observation", "action"])
+    actor = Actor(
+        torch.nn.Sequential(MLP(in_features=S, out_features=A, num_cells=[width]), torch.nn.Tanh()),
+        spec=env.action_spec,
+    )
+    qvalue = ValueOperator(
+        MLP(in_features=S + A, out_features=1, num_cells=[width]), in_keys=["observation", "action"]
+    )
     return wm, actor, qvalue
 
 
@@ -61,10 +72,12 @@ def test_world_model_and_rave_losses_on_mujoco(mujoco_batch):
         TD3Loss(actor, qvalue, action_spec=env.action_spec, num_qvalue_nets=4),
     ):
         SoftUpdate(loss, tau=0.01)
-        loss.make_value_estimator(RAVEValueEstimator.for_loss(loss, world_model=wm, gamma=0.99, horizon=3))
+        loss.make_value_estimator(
+            RAVEValueEstimator.for_loss(loss, world_model=wm, gamma=0.99, horizon=3)
+        )
         td = batch.clone()
         out = loss(td)
-        names = [k for k in out.keys() if k.startswith("loss_")]
+        names = [k for k in out.keys() if k.startswith("loss_")]  # noqa: SIM118 (iterating a TensorDict walks its batch)
         total = sum(out[k] for k in names)
         assert torch.isfinite(total)
         total.backward()

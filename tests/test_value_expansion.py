@@ -28,12 +28,23 @@ S, A = 3, 2
 def world_model(N=4, seed=0):
     torch.manual_seed(seed)
     wm = WorldModelEnsemble(
-        S, A, num_models=N, transition_cells=16, transition_layers=3, reward_cells=16,
-        reward_layers=3, termination_cells=16, termination_layers=3,
+        S,
+        A,
+        num_models=N,
+        transition_cells=16,
+        transition_layers=3,
+        reward_cells=16,
+        reward_layers=3,
+        termination_cells=16,
+        termination_layers=3,
     )
     g = torch.Generator().manual_seed(seed)
-    wm.update_normalizers(torch.randn(64, S, generator=g), torch.rand(64, A, generator=g),
-                          torch.randn(64, S, generator=g), torch.randn(64, generator=g))
+    wm.update_normalizers(
+        torch.randn(64, S, generator=g),
+        torch.rand(64, A, generator=g),
+        torch.randn(64, S, generator=g),
+        torch.randn(64, generator=g),
+    )
     return wm
 
 
@@ -42,7 +53,9 @@ def actor_net():
 
 
 def critic_net():
-    return ValueOperator(MLP(in_features=S + A, out_features=1, num_cells=[16]), in_keys=["observation", "action"])
+    return ValueOperator(
+        MLP(in_features=S + A, out_features=1, num_cells=[16]), in_keys=["observation", "action"]
+    )
 
 
 def batch(B=8, terminal=(), seed=1):
@@ -95,10 +108,16 @@ class TestTD0Equivalence:
         perturb(loss.target_value_network_params)
         perturb(loss.target_actor_network_params)
         data = batch(B=16, terminal=(2, 5))
-        td0 = loss.value_estimator.value_estimate(data.clone(), target_params=loss._cached_target_params)
+        td0 = loss.value_estimator.value_estimate(
+            data.clone(), target_params=loss._cached_target_params
+        )
         kw = {"alpha": 0.0, "adaptive_alpha": False} if cls is RAVEValueEstimator else {}
-        loss.make_value_estimator(cls.for_loss(loss, world_model=world_model(N), gamma=0.99, horizon=0, **kw))
-        ours = loss.value_estimator.value_estimate(data.clone(), target_params=loss._cached_target_params)
+        loss.make_value_estimator(
+            cls.for_loss(loss, world_model=world_model(N), gamma=0.99, horizon=0, **kw)
+        )
+        ours = loss.value_estimator.value_estimate(
+            data.clone(), target_params=loss._cached_target_params
+        )
         if N == 1:  # a single candidate: bit-for-bit the same arithmetic
             assert torch.equal(ours, td0)
         else:
@@ -118,7 +137,9 @@ def naive_target(wm, actor, critic, critic_params, data, gamma, H, alpha, mix):
 
     def q(k, s, a):
         with critic_params[k].to_module(critic):
-            return critic(TensorDict(observation=s, action=a, batch_size=s.shape[:-1]))["state_action_value"].squeeze(-1)
+            return critic(TensorDict(observation=s, action=a, batch_size=s.shape[:-1]))[
+                "state_action_value"
+            ].squeeze(-1)
 
     traj = []  # per member i: states, actions, continuation
     for i in range(N):
@@ -140,7 +161,9 @@ def naive_target(wm, actor, critic, critic_params, data, gamma, H, alpha, mix):
                 for k in range(K):
                     T = r.clone()
                     for h in range(1, Hh + 1):
-                        rj = wm.reward(states[h - 1], actions[h - 1], states[h], sample=False)[j].squeeze(-1)
+                        rj = wm.reward(states[h - 1], actions[h - 1], states[h], sample=False)[
+                            j
+                        ].squeeze(-1)
                         T = T + gamma**h * cont[h - 1] * rj
                     T = T + gamma ** (Hh + 1) * cont[Hh] * q(k, states[Hh], actions[Hh])
                     cands.append(T)
@@ -164,25 +187,48 @@ class TestAgainstNaiveRollout:
         critics = [critic_net() for _ in range(K)]
         params = TensorDict.from_modules(*critics, as_module=True)
         est = ValueExpansionEstimator(
-            world_model=wm, actor_network=actor, value_network=critics[0], value_params=params,
-            gamma=0.9, horizon=H, rollout="mean", alpha=0.7, alpha_mode=alpha_mode,
+            world_model=wm,
+            actor_network=actor,
+            value_network=critics[0],
+            value_params=params,
+            gamma=0.9,
+            horizon=H,
+            rollout="mean",
+            alpha=0.7,
+            alpha_mode=alpha_mode,
         )
         data = batch(B=6, terminal=(1,))
         ours = est.value_estimate(data).squeeze(-1)
         if alpha_mode == "constant":
             alpha = torch.full((6,), 0.7)
         else:
-            alpha = (0.7 * (1 - wm.mean_prediction_error(data["observation"], data["action"], data["next", "observation"]))).clamp_min(0)
+            alpha = (
+                0.7
+                * (
+                    1
+                    - wm.mean_prediction_error(
+                        data["observation"], data["action"], data["next", "observation"]
+                    )
+                )
+            ).clamp_min(0)
         torch.testing.assert_close(data["rave_alpha"].squeeze(-1), alpha)
         with torch.no_grad():
-            ref = naive_target(wm, actor, critics[0], params, data, 0.9, H, alpha, "inverse_variance")
+            ref = naive_target(
+                wm, actor, critics[0], params, data, 0.9, H, alpha, "inverse_variance"
+            )
         torch.testing.assert_close(ours, ref, rtol=1e-5, atol=1e-5)
 
     def test_mve_fixed_horizon(self):
         wm, actor, critic = world_model(3), actor_net(), critic_net()
         params = TensorDict.from_module(critic, as_module=True).expand(1).clone()
-        est = MVEEstimator(world_model=wm, actor_network=actor, value_network=critic, value_params=params,
-                           gamma=0.8, horizon=2)
+        est = MVEEstimator(
+            world_model=wm,
+            actor_network=actor,
+            value_network=critic,
+            value_params=params,
+            gamma=0.8,
+            horizon=2,
+        )
         data = batch(B=5)
         with torch.no_grad():
             ref = naive_target(wm, actor, critic, params, data, 0.8, 2, torch.zeros(5), "fixed")
@@ -212,17 +258,33 @@ class LineModel:
 
 
 def line_estimator(cls=MVEEstimator, done_prob=0.0, **kw):
-    actor = TensorDictModule(lambda o: torch.ones_like(o), in_keys=["observation"], out_keys=["action"])
-    critic = TensorDictModule(lambda o, a: 10 * o + a, in_keys=["observation", "action"], out_keys=["state_action_value"])
-    return cls(world_model=LineModel(done_prob=done_prob), actor_network=actor, value_network=critic, gamma=0.5, **kw)
+    actor = TensorDictModule(
+        lambda o: torch.ones_like(o), in_keys=["observation"], out_keys=["action"]
+    )
+    critic = TensorDictModule(
+        lambda o, a: 10 * o + a, in_keys=["observation", "action"], out_keys=["state_action_value"]
+    )
+    return cls(
+        world_model=LineModel(done_prob=done_prob),
+        actor_network=actor,
+        value_network=critic,
+        gamma=0.5,
+        **kw,
+    )
 
 
 def line_batch(terminated=False):
     t = torch.tensor([[terminated]])
     return TensorDict(
-        observation=torch.tensor([[1.0]]), action=torch.tensor([[1.0]]),
-        next=TensorDict(observation=torch.tensor([[2.0]]), reward=torch.tensor([[1.0]]),
-                        done=t.clone(), terminated=t, batch_size=[1]),
+        observation=torch.tensor([[1.0]]),
+        action=torch.tensor([[1.0]]),
+        next=TensorDict(
+            observation=torch.tensor([[2.0]]),
+            reward=torch.tensor([[1.0]]),
+            done=t.clone(),
+            terminated=t,
+            batch_size=[1],
+        ),
         batch_size=[1],
     )
 
@@ -233,9 +295,9 @@ class TestHandComputed:
     @pytest.mark.parametrize(
         "H,expected",
         [
-            (0, 1 + 0.5 * 21),                                  # r + g Q(2, 1)
-            (1, 1 + 0.5 * 3 + 0.25 * 31),                       # r + g r~(3) + g^2 Q(3, 1)
-            (2, 1 + 0.5 * 3 + 0.25 * 4 + 0.125 * 41),           # = 8.625
+            (0, 1 + 0.5 * 21),  # r + g Q(2, 1)
+            (1, 1 + 0.5 * 3 + 0.25 * 31),  # r + g r~(3) + g^2 Q(3, 1)
+            (2, 1 + 0.5 * 3 + 0.25 * 4 + 0.125 * 41),  # = 8.625
         ],
     )
     def test_one_member_mve_is_h_step_return(self, H, expected):
@@ -245,11 +307,18 @@ class TestHandComputed:
     def test_terminal_real_transition_gives_reward(self):
         for cls in (MVEEstimator, STEVEEstimator, RAVEValueEstimator):
             kw = {"adaptive_alpha": False} if cls is RAVEValueEstimator else {}
-            assert line_estimator(cls, horizon=3, **kw).value_estimate(line_batch(terminated=True)).item() == 1.0
+            assert (
+                line_estimator(cls, horizon=3, **kw)
+                .value_estimate(line_batch(terminated=True))
+                .item()
+                == 1.0
+            )
 
     def test_certain_model_termination_cuts_later_terms(self):
         # p(done) = 1 at every imagined state: only r_t and the first imagined reward remain
-        assert line_estimator(done_prob=1.0, horizon=3).value_estimate(line_batch()).item() == pytest.approx(1 + 0.5 * 3)
+        assert line_estimator(done_prob=1.0, horizon=3).value_estimate(
+            line_batch()
+        ).item() == pytest.approx(1 + 0.5 * 3)
         # STEVE with one member has zero variance everywhere: equal weights over H = 0..3
         steve = line_estimator(STEVEEstimator, done_prob=1.0, horizon=3)
         data = line_batch()
@@ -258,9 +327,13 @@ class TestHandComputed:
 
     def test_terminal_batch_with_neural_ensemble(self):
         loss = ddpg_loss()
-        loss.make_value_estimator(RAVEValueEstimator.for_loss(loss, world_model=world_model(4), gamma=0.99, horizon=3))
+        loss.make_value_estimator(
+            RAVEValueEstimator.for_loss(loss, world_model=world_model(4), gamma=0.99, horizon=3)
+        )
         data = batch(B=6, terminal=range(6))
-        torch.testing.assert_close(loss.value_estimator.value_estimate(data), data["next", "reward"])
+        torch.testing.assert_close(
+            loss.value_estimator.value_estimate(data), data["next", "reward"]
+        )
 
 
 class TestZeroVariance:
@@ -272,7 +345,9 @@ class TestZeroVariance:
                 head.min_logvar.fill_(-1e4)
         loss = td3_loss(K=4)
         data = batch(B=10, terminal=(3,))
-        steve = STEVEEstimator.for_loss(loss, world_model=wm, gamma=0.95, horizon=3).value_estimate(data.clone())
+        steve = STEVEEstimator.for_loss(loss, world_model=wm, gamma=0.95, horizon=3).value_estimate(
+            data.clone()
+        )
         rave = RAVEValueEstimator.for_loss(
             loss, world_model=wm, gamma=0.95, horizon=3, alpha=0.0, adaptive_alpha=False
         ).value_estimate(data.clone())
@@ -282,7 +357,9 @@ class TestZeroVariance:
         loss = td3_loss(K=2)
         est = RAVEValueEstimator.for_loss(loss, world_model=world_model(4), gamma=0.95, horizon=3)
         data = batch()
-        assert not torch.allclose(est.value_estimate(data.clone()), est.value_estimate(data.clone()))
+        assert not torch.allclose(
+            est.value_estimate(data.clone()), est.value_estimate(data.clone())
+        )
 
 
 class TestLossIntegration:
@@ -303,8 +380,11 @@ class TestLossIntegration:
     def test_subclass_door(self):
         loss = ddpg_loss()
         loss.make_value_estimator(
-            STEVEEstimator, world_model=world_model(), actor_network=loss.actor_network,
-            value_network=loss.value_network, gamma=0.9,
+            STEVEEstimator,
+            world_model=world_model(),
+            actor_network=loss.actor_network,
+            value_network=loss.value_network,
+            gamma=0.9,
         )
         assert isinstance(loss.value_estimator, STEVEEstimator)
         out = loss(batch())
@@ -342,7 +422,10 @@ class TestLossIntegration:
     def test_make_by_name(self):
         loss = ddpg_loss()
         wm = world_model()
-        assert type(make_value_expansion_estimator("RAVE", loss, world_model=wm, gamma=0.9)) is RAVEValueEstimator
+        assert (
+            type(make_value_expansion_estimator("RAVE", loss, world_model=wm, gamma=0.9))
+            is RAVEValueEstimator
+        )
         est = make_value_expansion_estimator("mve", loss, world_model=wm, gamma=0.9, horizon=2)
         assert (est.rollout, est.mix, float(est.alpha)) == ("mean", "fixed", 0.0)
         est = make_value_expansion_estimator("steve", loss, world_model=wm, gamma=0.9)
@@ -381,7 +464,9 @@ class TestCallCounts:
     def test_rows_per_network(self, N, K, H):
         wm = world_model(N)
         loss = td3_loss(K)
-        est = RAVEValueEstimator.for_loss(loss, world_model=wm, gamma=0.9, horizon=H, adaptive_alpha=False)
+        est = RAVEValueEstimator.for_loss(
+            loss, world_model=wm, gamma=0.9, horizon=H, adaptive_alpha=False
+        )
         M = 7
         counts = {}
 
@@ -453,8 +538,13 @@ class TestBadInput:
 
     def test_bad_modes_and_ensemble_size(self):
         with pytest.raises(ValueError, match="rollout"):
-            ValueExpansionEstimator(world_model=world_model(), actor_network=actor_net(),
-                                    value_network=critic_net(), gamma=0.9, rollout="median")
+            ValueExpansionEstimator(
+                world_model=world_model(),
+                actor_network=actor_net(),
+                value_network=critic_net(),
+                gamma=0.9,
+                rollout="median",
+            )
         with pytest.raises(ValueError, match="num_models"):
             WorldModelEnsemble(S, A, num_models=0)
         with pytest.raises(ValueError, match="world_model"):

@@ -13,8 +13,16 @@ from torchrl_rave.objectives import WorldModelLoss, gaussian_nll
 
 def small_model(S=3, A=2, N=4, width=16, **kw):
     return WorldModelEnsemble(
-        S, A, num_models=N, transition_cells=width, transition_layers=3,
-        reward_cells=width, reward_layers=3, termination_cells=width, termination_layers=3, **kw
+        S,
+        A,
+        num_models=N,
+        transition_cells=width,
+        transition_layers=3,
+        reward_cells=width,
+        reward_layers=3,
+        termination_cells=width,
+        termination_layers=3,
+        **kw,
     )
 
 
@@ -59,7 +67,9 @@ class TestEnsembleLayers:
             flat = p.detach().reshape(4, -1)
             for i in range(4):
                 for j in range(i + 1, 4):
-                    assert not torch.equal(flat[i], flat[j]), f"{name}: members {i} and {j} are equal"
+                    assert not torch.equal(flat[i], flat[j]), (
+                        f"{name}: members {i} and {j} are equal"
+                    )
 
     def test_bad_layout(self):
         mlp = EnsembleMLP(3, 4, 2, num_cells=[8])
@@ -93,7 +103,11 @@ class TestWorldModelEnsemble:
         obs, act = torch.randn(*batch, 3), torch.randn(*batch, 2)
         assert wm.step(obs, act, sample=True).shape == (4, *batch, 3)
         nxt = wm.step(obs, act, sample=False)
-        assert wm.step(nxt, act.expand(4, *batch, 2), sample=False, per_member=True).shape == (4, *batch, 3)
+        assert wm.step(nxt, act.expand(4, *batch, 2), sample=False, per_member=True).shape == (
+            4,
+            *batch,
+            3,
+        )
         assert wm.reward(obs, act, obs, sample=True).shape == (4, *batch, 1)
         assert wm.termination_prob(obs).shape == (4, *batch, 1)
         assert wm.mean_prediction_error(obs, act, obs).shape == batch
@@ -101,22 +115,33 @@ class TestWorldModelEnsemble:
     def test_mean_mode_is_deterministic_and_sample_mode_matches_gaussian(self):
         torch.manual_seed(0)
         wm = small_model(S=2, A=1, N=2)
-        wm.update_normalizers(torch.randn(100, 2) * 3, torch.rand(100, 1), torch.randn(100, 2) * 3, torch.randn(100) * 2)
+        wm.update_normalizers(
+            torch.randn(100, 2) * 3,
+            torch.rand(100, 1),
+            torch.randn(100, 2) * 3,
+            torch.randn(100) * 2,
+        )
         obs, act = torch.randn(1, 2), torch.rand(1, 1)
         a, b = wm.step(obs, act, sample=False), wm.step(obs, act, sample=False)
         torch.testing.assert_close(a, b)
         mean, logvar = wm.predict_transition(obs, act)
         std_raw = (0.5 * logvar).exp() * wm.delta_norm.std
         draws = wm.step(obs.expand(20000, 2), act.expand(20000, 1), sample=True)  # [N, 20000, 2]
-        torch.testing.assert_close(draws.mean(1), a[:, 0], atol=0.05 * std_raw.max().item() + 1e-4, rtol=0)
+        torch.testing.assert_close(
+            draws.mean(1), a[:, 0], atol=0.05 * std_raw.max().item() + 1e-4, rtol=0
+        )
         torch.testing.assert_close(draws.std(1), std_raw[:, 0], rtol=0.03, atol=0)
         # reward: same story in reward units
         r_mean = wm.reward(obs, act, obs, sample=False)
-        r_draws = wm.reward(obs.expand(20000, 2), act.expand(20000, 1), obs.expand(20000, 2), sample=True)
+        r_draws = wm.reward(
+            obs.expand(20000, 2), act.expand(20000, 1), obs.expand(20000, 2), sample=True
+        )
         _, r_logvar = wm.predict_reward(obs, act, obs)
         r_std = (0.5 * r_logvar).exp() * wm.reward_norm.std
         torch.testing.assert_close(r_draws.std(1), r_std[:, 0], rtol=0.03, atol=0)
-        torch.testing.assert_close(r_draws.mean(1), r_mean[:, 0], atol=0.05 * r_std.max().item(), rtol=0)
+        torch.testing.assert_close(
+            r_draws.mean(1), r_mean[:, 0], atol=0.05 * r_std.max().item(), rtol=0
+        )
 
     def test_tensordict_forward_follows_interaction_type(self):
         torch.manual_seed(0)
@@ -125,7 +150,9 @@ class TestWorldModelEnsemble:
         with set_interaction_type("deterministic"):
             a, b = wm(td.clone()), wm(td.clone())
         torch.testing.assert_close(a["next", "observation"], b["next", "observation"])
-        torch.testing.assert_close(a["next", "observation"], wm.step(td["observation"], td["action"], sample=False))
+        torch.testing.assert_close(
+            a["next", "observation"], wm.step(td["observation"], td["action"], sample=False)
+        )
         with set_interaction_type("random"):
             c = wm(td.clone())
         assert not torch.allclose(a["next", "observation"], c["next", "observation"])
@@ -136,7 +163,13 @@ class TestWorldModelEnsemble:
         batch = transitions(64)
         wm.update_normalizers_from(batch)
         sd = wm.state_dict()
-        for name in ("obs_norm.mean", "obs_norm.var", "delta_norm.mean", "reward_norm.var", "action_norm.count"):
+        for name in (
+            "obs_norm.mean",
+            "obs_norm.var",
+            "delta_norm.mean",
+            "reward_norm.var",
+            "action_norm.count",
+        ):
             assert name in sd
         torch.save(sd, tmp_path / "wm.pt")
         other = small_model()
@@ -150,13 +183,18 @@ class TestWorldModelEnsemble:
         from torchrl.data import Bounded, Composite, Unbounded
 
         wm = WorldModelEnsemble.from_specs(
-            Composite(observation=Unbounded(shape=(11,))), Bounded(-1, 1, shape=(3,)),
-            num_models=2, transition_cells=8, reward_cells=8, termination_cells=8,
+            Composite(observation=Unbounded(shape=(11,))),
+            Bounded(-1, 1, shape=(3,)),
+            num_models=2,
+            transition_cells=8,
+            reward_cells=8,
+            termination_cells=8,
         )
         assert (wm.observation_dim, wm.action_dim, wm.num_models) == (11, 3, 2)
         with pytest.raises(ValueError, match="pixels"):
             WorldModelEnsemble.from_specs(
-                Composite(observation=Unbounded(shape=(11,))), Bounded(-1, 1, shape=(3,)),
+                Composite(observation=Unbounded(shape=(11,))),
+                Bounded(-1, 1, shape=(3,)),
                 observation_key="pixels",
             )
 
@@ -165,7 +203,9 @@ class TestWorldModelEnsemble:
         assert wm.num_models == 4
         # 8 FC layers for the transition model: 7 trunk layers + the mean/logvar heads
         assert len(wm.transition.trunk.layers) == 7 and wm.transition.mean_head.in_features == 512
-        assert len(wm.reward_model.trunk.layers) == 3 and wm.reward_model.mean_head.in_features == 128
+        assert (
+            len(wm.reward_model.trunk.layers) == 3 and wm.reward_model.mean_head.in_features == 128
+        )
         assert len(wm.termination.layers) == 4 and wm.termination.layers[0].out_features == 128
 
     @pytest.mark.parametrize("bad", [0, -1, 2.5])
@@ -216,7 +256,13 @@ class TestWorldModelLoss:
     def test_logs_and_errors(self):
         loss = WorldModelLoss(small_model())
         out = loss(transitions(32))
-        for key in ("transition_nll", "transition_mse", "reward_nll", "reward_mse", "termination_bce"):
+        for key in (
+            "transition_nll",
+            "transition_mse",
+            "reward_nll",
+            "reward_mse",
+            "termination_bce",
+        ):
             assert torch.isfinite(out[key]) and out[key] > 0
         bad = transitions(32)
         bad["next", "observation"][3, 1] = float("nan")
@@ -241,16 +287,29 @@ class TestLearnsLinearGaussianSystem:
         nxt = obs @ self.A.T + act @ self.Bm.T + self.sigma * torch.randn(n, self.S, generator=g)
         rew = (obs**2).sum(-1, keepdim=True)
         return TensorDict(
-            observation=obs, action=act,
-            next=TensorDict(observation=nxt, reward=rew, terminated=torch.zeros(n, 1, dtype=torch.bool), batch_size=[n]),
+            observation=obs,
+            action=act,
+            next=TensorDict(
+                observation=nxt,
+                reward=rew,
+                terminated=torch.zeros(n, 1, dtype=torch.bool),
+                batch_size=[n],
+            ),
             batch_size=[n],
         )
 
     def train(self, data, steps, seed):
         torch.manual_seed(seed)
         wm = WorldModelEnsemble(
-            self.S, self.Adim, num_models=4, transition_cells=64, transition_layers=3,
-            reward_cells=16, reward_layers=2, termination_cells=8, termination_layers=2,
+            self.S,
+            self.Adim,
+            num_models=4,
+            transition_cells=64,
+            transition_layers=3,
+            reward_cells=16,
+            reward_layers=2,
+            termination_cells=8,
+            termination_layers=2,
         )
         wm.update_normalizers_from(data)
         loss = WorldModelLoss(wm)

@@ -112,7 +112,7 @@ class EnsembleMLP(nn.Module):
         sizes = [in_features, *num_cells, out_features]
         self.layers = nn.ModuleList(
             EnsembleLinear(num_members, fan_in, fan_out)
-            for fan_in, fan_out in zip(sizes[:-1], sizes[1:])
+            for fan_in, fan_out in zip(sizes[:-1], sizes[1:], strict=True)
         )
         self.activation = activation()
 

@@ -40,7 +40,9 @@ class RunningNormalizer(nn.Module):
     def update(self, x: torch.Tensor) -> None:
         """Merges the rows of ``x`` (shape ``[*B, size]``) into the statistics."""
         if x.shape[-1] != self.size:
-            raise ValueError(f"normaliser of size {self.size} got a tensor of shape {tuple(x.shape)}")
+            raise ValueError(
+                f"normaliser of size {self.size} got a tensor of shape {tuple(x.shape)}"
+            )
         x = x.reshape(-1, self.size).to(torch.float64)
         n = x.shape[0]
         if n == 0:

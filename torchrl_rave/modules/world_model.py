@@ -137,13 +137,21 @@ class WorldModelEnsemble(TensorDictModuleBase):
         self.action_dim = action_dim
         S, A = observation_dim, action_dim
         self.transition = GaussianEnsembleMLP(
-            num_models, S + A, S, _cells(transition_cells, transition_layers, "transition"), activation
+            num_models,
+            S + A,
+            S,
+            _cells(transition_cells, transition_layers, "transition"),
+            activation,
         )
         self.reward_model = GaussianEnsembleMLP(
             num_models, 2 * S + A, 1, _cells(reward_cells, reward_layers, "reward"), activation
         )
         self.termination = EnsembleMLP(
-            num_models, S, 1, _cells(termination_cells, termination_layers, "termination"), activation
+            num_models,
+            S,
+            1,
+            _cells(termination_cells, termination_layers, "termination"),
+            activation,
         )
         self.obs_norm = RunningNormalizer(S)
         self.action_norm = RunningNormalizer(A)
@@ -221,7 +229,9 @@ class WorldModelEnsemble(TensorDictModuleBase):
     def _sa_input(self, obs, action, per_member):
         obs, batch = self._flatten(obs, per_member, "observation", self.observation_dim)
         action, _ = self._flatten(action, per_member, "action", self.action_dim)
-        return torch.cat([self.obs_norm.normalize(obs), self.action_norm.normalize(action)], -1), batch
+        return torch.cat(
+            [self.obs_norm.normalize(obs), self.action_norm.normalize(action)], -1
+        ), batch
 
     # ------------------------------------------------------------- transition
     def predict_transition(
@@ -293,10 +303,14 @@ class WorldModelEnsemble(TensorDictModuleBase):
         return self.reward_norm.denormalize(mean)
 
     # ------------------------------------------------------------ termination
-    def termination_logits(self, next_obs: torch.Tensor, *, per_member: bool = False) -> torch.Tensor:
+    def termination_logits(
+        self, next_obs: torch.Tensor, *, per_member: bool = False
+    ) -> torch.Tensor:
         """Logit of ``p(terminated | s')`` for every member, ``[N, *B, 1]``."""
         x, batch = self._flatten(next_obs, per_member, "next observation", self.observation_dim)
-        return self._unflatten(self.termination(self.obs_norm.normalize(x), per_member=per_member), batch)
+        return self._unflatten(
+            self.termination(self.obs_norm.normalize(x), per_member=per_member), batch
+        )
 
     def termination_prob(self, next_obs: torch.Tensor, *, per_member: bool = False) -> torch.Tensor:
         """``p(terminated | s')`` for every member, ``[N, *B, 1]``."""
@@ -365,4 +379,3 @@ class WorldModelEnsemble(TensorDictModuleBase):
             f"num_models={self.num_models}, observation_dim={self.observation_dim}, "
             f"action_dim={self.action_dim}"
         )
-

@@ -122,7 +122,9 @@ def discounted_reward_sums(
         ``[Ni, Nj, *B, H_max + 1]``, entry 0 is zero.
     """
     H = imagined_rewards.shape[-1]
-    terms = imagined_rewards * (_gamma_powers(gamma, H, imagined_rewards) * continuation[..., :H]).unsqueeze(1)
+    terms = imagined_rewards * (
+        _gamma_powers(gamma, H, imagined_rewards) * continuation[..., :H]
+    ).unsqueeze(1)
     zero = terms.new_zeros(*terms.shape[:-1], 1)
     return torch.cat([zero, terms.cumsum(-1)], -1)
 
@@ -157,11 +159,15 @@ def candidate_targets(
     """
     H1 = values.shape[-1]
     reward_sums = discounted_reward_sums(imagined_rewards, continuation, gamma)  # [Ni, Nj, *B, H+1]
-    bootstrap = (_gamma_powers(gamma, H1, values) * continuation).unsqueeze(1) * values  # [Ni, K, *B, H+1]
+    bootstrap = (_gamma_powers(gamma, H1, values) * continuation).unsqueeze(
+        1
+    ) * values  # [Ni, K, *B, H+1]
     return reward.unsqueeze(-1) + reward_sums.unsqueeze(2) + bootstrap.unsqueeze(1)
 
 
-def horizon_moments(candidates: torch.Tensor, ensemble_dims: int = 3) -> tuple[torch.Tensor, torch.Tensor]:
+def horizon_moments(
+    candidates: torch.Tensor, ensemble_dims: int = 3
+) -> tuple[torch.Tensor, torch.Tensor]:
     """Mean ``E_H`` and (population) variance ``V_H`` over the leading ensemble dimensions.
 
     Args:

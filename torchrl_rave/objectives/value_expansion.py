@@ -225,12 +225,16 @@ class ValueExpansionEstimator(ValueEstimatorBase):
         """
         if "world_model" not in hyperparams:
             raise ValueError(f"{cls.__name__}.for_loss needs world_model=")
-        actor = hyperparams.pop("actor_network", None) or getattr(loss_module, "actor_network", None)
+        actor = hyperparams.pop("actor_network", None) or getattr(
+            loss_module, "actor_network", None
+        )
         if actor is None:
             raise ValueError(
                 f"{type(loss_module).__name__} has no actor_network; pass actor_network= explicitly"
             )
-        if "qvalue_network" in loss_module._modules or hasattr(loss_module, "qvalue_network_params"):
+        if "qvalue_network" in loss_module._modules or hasattr(
+            loss_module, "qvalue_network_params"
+        ):
             critic_name = "qvalue_network"
         elif hasattr(loss_module, "value_network_params"):
             critic_name = "value_network"
@@ -360,7 +364,9 @@ class ValueExpansionEstimator(ValueEstimatorBase):
                 absent the wired target parameters are used.
         """
         if next_value is not None:
-            raise ValueError(f"{type(self).__name__} computes its own values; next_value is not supported")
+            raise ValueError(
+                f"{type(self).__name__} computes its own values; next_value is not supported"
+            )
         wm = self.world_model
         N, H = wm.num_models, self.horizon
         obs, action, next_obs, reward, terminated, batch_shape = self._read_batch(tensordict)
@@ -401,7 +407,9 @@ class ValueExpansionEstimator(ValueEstimatorBase):
                 type(self).__name__,
             )
         q0 = q[:, :M].reshape(K, 1, M, 1).expand(K, N, M, 1)
-        values = torch.cat([q0, q[:, M:].reshape(K, N, M, H)], -1).transpose(0, 1)  # [Ni, K, M, H+1]
+        values = torch.cat([q0, q[:, M:].reshape(K, N, M, H)], -1).transpose(
+            0, 1
+        )  # [Ni, K, M, H+1]
 
         continuation = VF.continuation_weights(terminated, done_prob)
         candidates = VF.candidate_targets(
@@ -469,7 +477,9 @@ class STEVEEstimator(ValueExpansionEstimator):
     """
 
     def __init__(self, *, horizon: int = 3, **kwargs) -> None:
-        super().__init__(horizon=horizon, rollout="mean", mix="inverse_variance", alpha=0.0, **kwargs)
+        super().__init__(
+            horizon=horizon, rollout="mean", mix="inverse_variance", alpha=0.0, **kwargs
+        )
 
 
 class RAVEValueEstimator(ValueExpansionEstimator):

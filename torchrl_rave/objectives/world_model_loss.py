@@ -117,7 +117,9 @@ class WorldModelLoss(LossModule):
     def out_keys(self):
         return ["loss_transition", "loss_reward", "loss_termination"]
 
-    def bootstrap_indices(self, batch_size: int, device: torch.device | None = None) -> torch.Tensor:
+    def bootstrap_indices(
+        self, batch_size: int, device: torch.device | None = None
+    ) -> torch.Tensor:
         """Independent resample indices per member, ``[N, batch_size]``."""
         N = self.world_model.num_models
         if not self.bootstrap:
