@@ -31,6 +31,13 @@ def _cells(width: int | Sequence[int], num_layers: int, name: str) -> list[int]:
     return cells
 
 
+def _draw(mean: torch.Tensor, logvar: torch.Tensor, sample: bool) -> torch.Tensor:
+    """A draw from ``N(mean, exp(logvar))`` when ``sample``, else the mean."""
+    if not sample:
+        return mean
+    return mean + torch.randn_like(mean) * (0.5 * logvar).exp()
+
+
 class WorldModelEnsemble(TensorDictModuleBase):
     """An ensemble of ``N`` probabilistic environment models (paper section 3.2 and 5.1).
 
@@ -255,10 +262,8 @@ class WorldModelEnsemble(TensorDictModuleBase):
         With ``sample=True`` member ``i`` draws ``s' ~ N(mean_i, var_i)`` (paper eq. 8);
         otherwise it returns its mean.
         """
-        mean, logvar = self.predict_transition(obs, action, per_member=per_member)
-        if sample:
-            mean = mean + torch.randn_like(mean) * (0.5 * logvar).exp()
-        return obs + self.delta_norm.denormalize(mean)
+        delta = _draw(*self.predict_transition(obs, action, per_member=per_member), sample)
+        return obs + self.delta_norm.denormalize(delta)
 
     def target_delta(self, obs: torch.Tensor, next_obs: torch.Tensor) -> torch.Tensor:
         """The transition model's regression target: the normalised state change."""
@@ -297,10 +302,8 @@ class WorldModelEnsemble(TensorDictModuleBase):
         per_member: bool = False,
     ) -> torch.Tensor:
         """Reward of every reward member, ``[N, *B, 1]``, in raw units (sampled or mean)."""
-        mean, logvar = self.predict_reward(obs, action, next_obs, per_member=per_member)
-        if sample:
-            mean = mean + torch.randn_like(mean) * (0.5 * logvar).exp()
-        return self.reward_norm.denormalize(mean)
+        reward = _draw(*self.predict_reward(obs, action, next_obs, per_member=per_member), sample)
+        return self.reward_norm.denormalize(reward)
 
     # ------------------------------------------------------------ termination
     def termination_logits(
