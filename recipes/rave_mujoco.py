@@ -78,7 +78,7 @@ def main(cfg: DictConfig) -> float:
 
     frames, pretrained = 0, False
     pbar = tqdm.tqdm(total=cfg.collector.total_frames, unit="frames")
-    eval_return = float("nan")
+    last_return = float("nan")
     start = time.time()
     for data in collector:
         data = data.reshape(-1)
@@ -113,8 +113,9 @@ def main(cfg: DictConfig) -> float:
         if logger is not None:
             for k, v in metrics.items():
                 logger.log_scalar(k, v, step=frames)
+        last_return = metrics.get("train/episode_reward", last_return)
         pbar.update(data.numel())
-        pbar.set_postfix(ret=metrics.get("train/episode_reward", float("nan")))
+        pbar.set_postfix(ret=f"{last_return:.1f}")
     pbar.close()
     collector.shutdown()
     results = evaluate(eval_env, actor, cfg.eval.episodes)
