@@ -225,9 +225,9 @@ class ValueExpansionEstimator(ValueEstimatorBase):
         """
         if "world_model" not in hyperparams:
             raise ValueError(f"{cls.__name__}.for_loss needs world_model=")
-        actor = hyperparams.pop("actor_network", None) or getattr(
-            loss_module, "actor_network", None
-        )
+        actor = hyperparams.pop("actor_network", None)
+        if actor is None:
+            actor = getattr(loss_module, "actor_network", None)
         if actor is None:
             raise ValueError(
                 f"{type(loss_module).__name__} has no actor_network; pass actor_network= explicitly"
