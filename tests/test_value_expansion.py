@@ -8,6 +8,7 @@ import pytest
 import torch
 from tensordict import TensorDict
 from tensordict.nn import TensorDictModule
+from test_world_model import small_model
 from torch import nn
 from torchrl.data import Bounded
 from torchrl.modules import MLP, Actor, ValueOperator
@@ -27,17 +28,7 @@ S, A = 3, 2
 
 def world_model(N=4, seed=0):
     torch.manual_seed(seed)
-    wm = WorldModelEnsemble(
-        S,
-        A,
-        num_models=N,
-        transition_cells=16,
-        transition_layers=3,
-        reward_cells=16,
-        reward_layers=3,
-        termination_cells=16,
-        termination_layers=3,
-    )
+    wm = small_model(S, A, N)
     g = torch.Generator().manual_seed(seed)
     wm.update_normalizers(
         torch.randn(64, S, generator=g),
