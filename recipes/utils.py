@@ -1,70 +1,241 @@
-"""Factories for the RAVE recipe (``make_*``), kept apart from the training loop."""
+"""Factories (``make_*``), config checks, evaluation and checkpoints for ``rave_mujoco.py``."""
 
 from __future__ import annotations
 
+import os
+import random
+import shutil
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
 import torch
-from omegaconf import DictConfig
-from tensordict.nn import TensorDictSequential
+from omegaconf import DictConfig, OmegaConf
+from tensordict import TensorDictBase
+from tensordict.nn import NormalParamExtractor, TensorDictModule, TensorDictSequential
 from torch import nn
 from torchrl.collectors import Collector
 from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
 from torchrl.envs import DoubleToFloat, GymEnv, RewardSum, StepCounter, TransformedEnv
-from torchrl.modules import MLP, Actor, AdditiveGaussianModule, ValueOperator
-from torchrl.objectives import SoftUpdate, TD3Loss
+from torchrl.envs.utils import ExplorationType, set_exploration_type
+from torchrl.modules import MLP, ProbabilisticActor, TanhModule, TanhNormal, ValueOperator
+from torchrl.objectives import SACLoss, SoftUpdate, TD3Loss, ValueEstimators
+from torchrl.record.loggers import Logger, get_logger
 
-from torchrl_rave import WorldModelEnsemble, WorldModelLoss, make_value_expansion_estimator
+from torchrl_rave import (
+    EnsembleDDPGLoss,
+    EpsilonGaussianModule,
+    WorldModelEnsemble,
+    WorldModelLoss,
+    make_value_expansion_estimator,
+)
 
 
-def make_env(cfg: DictConfig, device: torch.device) -> TransformedEnv:
+@dataclass(frozen=True)
+class Algorithm:
+    """What ``algorithm=<name>`` selects: the TorchRL loss, the target estimator, K."""
+
+    loss: str  # "ensemble_ddpg" | "td3" | "sac"
+    estimator: str | None  # value-expansion estimator name; None: TD(0)
+    num_critics: int
+    adaptive_alpha: bool = True
+
+    @property
+    def model_based(self) -> bool:
+        return self.estimator is not None
+
+
+ALGORITHMS = {
+    "ddpg": Algorithm("ensemble_ddpg", None, 1),
+    "mve": Algorithm("ensemble_ddpg", "mve", 4),
+    "steve": Algorithm("ensemble_ddpg", "steve", 4),
+    "rave": Algorithm("ensemble_ddpg", "rave", 4, adaptive_alpha=True),
+    "rave_constant": Algorithm("ensemble_ddpg", "rave", 4, adaptive_alpha=False),
+    "td3": Algorithm("td3", None, 2),
+    "sac": Algorithm("sac", None, 2),
+}
+LOGGER_BACKENDS = {"": None, "csv": None, "tensorboard": "tensorboard", "wandb": "wandb"}
+
+
+# --------------------------------------------------------------------------- config checks
+def _require(ok: bool, key: str, value, expected: str) -> None:
+    if not ok:
+        raise ValueError(f"config key {key}={value!r} is invalid: expected {expected}")
+
+
+def check_config(cfg: DictConfig) -> Algorithm:
+    """Rejects bad settings before anything is built; returns the selected algorithm."""
     import gymnasium as gym
 
+    _require(cfg.algorithm in ALGORITHMS, "algorithm", cfg.algorithm, f"one of {list(ALGORITHMS)}")
     if cfg.env.name not in gym.registry:
         mujoco = sorted(k for k in gym.registry if k.endswith("-v5"))
         raise ValueError(
-            f"env.name={cfg.env.name!r} is not a registered gymnasium id; MuJoCo ids: {mujoco}"
+            f"config key env.name={cfg.env.name!r} is not a registered gymnasium id; "
+            f"MuJoCo ids: {mujoco}"
         )
+    positive = [
+        "collector.total_frames",
+        "collector.frames_per_batch",
+        "replay_buffer.batch_size",
+        "world_model.num_models",
+        "world_model.transition_cells",
+        "world_model.transition_layers",
+        "world_model.reward_cells",
+        "world_model.reward_layers",
+        "world_model.termination_cells",
+        "world_model.termination_layers",
+        "world_model.train_every",
+        "network.actor_cells",
+        "network.critic_cells",
+        "network.num_layers",
+        "td3.policy_delay",
+        "eval.interval",
+        "eval.episodes",
+        "checkpoint.interval",
+    ]
+    non_negative = [
+        "collector.init_random_frames",
+        "world_model.pretrain_frames",
+        "world_model.pretrain_updates",
+        "estimator.horizon",
+    ]
+    for key in positive + non_negative:
+        value = OmegaConf.select(cfg, key)
+        low = 1 if key in positive else 0
+        _require(
+            isinstance(value, int) and not isinstance(value, bool) and value >= low,
+            key,
+            value,
+            f"an integer >= {low}",
+        )
+    for key in ["optim.lr_actor", "optim.lr_critic", "optim.lr_alpha", "world_model.lr"]:
+        value = OmegaConf.select(cfg, key)
+        _require(float(value) > 0, key, value, "a number > 0")
+    _require(float(cfg.optim.utd_ratio) > 0, "optim.utd_ratio", cfg.optim.utd_ratio, "> 0")
+    _require(0 <= float(cfg.optim.gamma) <= 1, "optim.gamma", cfg.optim.gamma, "in [0, 1]")
+    _require(0 < float(cfg.optim.tau) <= 1, "optim.tau", cfg.optim.tau, "in (0, 1]")
+    _require(float(cfg.estimator.alpha) >= 0, "estimator.alpha", cfg.estimator.alpha, ">= 0")
+    _require(
+        float(cfg.estimator.alpha_error_scale) > 0,
+        "estimator.alpha_error_scale",
+        cfg.estimator.alpha_error_scale,
+        "> 0",
+    )
+    _require(0 <= float(cfg.exploration.epsilon) <= 1, "exploration.epsilon",
+             cfg.exploration.epsilon, "in [0, 1]")  # fmt: skip
+    _require(float(cfg.exploration.sigma) >= 0, "exploration.sigma", cfg.exploration.sigma, ">= 0")
+    _require(
+        cfg.network.num_critics is None
+        or (isinstance(cfg.network.num_critics, int) and cfg.network.num_critics >= 1),
+        "network.num_critics",
+        cfg.network.num_critics,
+        "null or an integer >= 1",
+    )
+    total = cfg.collector.total_frames
+    _require(
+        cfg.collector.frames_per_batch <= total,
+        "collector.frames_per_batch",
+        cfg.collector.frames_per_batch,
+        f"<= collector.total_frames ({total})",
+    )
+    size = replay_buffer_size(cfg)
+    _require(size >= 1, "replay_buffer.size", cfg.replay_buffer.size, "null or an integer >= 1")
+    _require(
+        cfg.replay_buffer.batch_size <= size,
+        "replay_buffer.batch_size",
+        cfg.replay_buffer.batch_size,
+        f"<= the replay buffer size ({size})",
+    )
+    _require(
+        cfg.logger.backend in LOGGER_BACKENDS,
+        "logger.backend",
+        cfg.logger.backend,
+        f"one of {list(LOGGER_BACKENDS)}",
+    )
+    package = LOGGER_BACKENDS[cfg.logger.backend]
+    if package is not None:
+        try:
+            __import__(package)
+        except ImportError as err:
+            raise ValueError(
+                f"logger.backend={cfg.logger.backend!r} needs the {package!r} package: "
+                f"pip install {package}"
+            ) from err
+    if cfg.collector.device is not None:
+        try:
+            torch.device(cfg.collector.device)
+        except RuntimeError as err:
+            raise ValueError(
+                f"config key collector.device={cfg.collector.device!r}: {err}"
+            ) from err
+    return ALGORITHMS[cfg.algorithm]
+
+
+def replay_buffer_size(cfg: DictConfig) -> int:
+    size = cfg.replay_buffer.size
+    return min(1_000_000, cfg.collector.total_frames) if size is None else int(size)
+
+
+def num_critics(cfg: DictConfig, algo: Algorithm) -> int:
+    return algo.num_critics if cfg.network.num_critics is None else cfg.network.num_critics
+
+
+# --------------------------------------------------------------------------- factories
+def make_env(cfg: DictConfig, device: torch.device) -> TransformedEnv:
     env = TransformedEnv(GymEnv(cfg.env.name, device=device), DoubleToFloat())
     env.append_transform(StepCounter())
     env.append_transform(RewardSum())
-    env.set_seed(cfg.env.seed)
     return env
 
 
-def make_actor_critic(cfg: DictConfig, env) -> tuple[Actor, ValueOperator, TensorDictSequential]:
+def _mlp(cfg: DictConfig, in_features: int, out_features: int, cells: int) -> MLP:
+    # num_layers counts FC layers with the output layer (paper appendix A: 4)
+    return MLP(
+        in_features=in_features,
+        out_features=out_features,
+        num_cells=[cells] * (cfg.network.num_layers - 1),
+        activation_class=nn.ReLU,
+    )
+
+
+def make_actor(cfg: DictConfig, env, algo: Algorithm):
+    """The policy and the exploration policy the collector runs.
+
+    Deterministic policies end in :class:`~torchrl.modules.TanhModule`, which maps onto the
+    action box; SAC's policy is a tanh-Gaussian and explores by sampling.
+    """
+    spec = env.action_spec
+    S, A = env.observation_spec["observation"].shape[-1], spec.shape[-1]
+    if algo.loss == "sac":
+        net = nn.Sequential(_mlp(cfg, S, 2 * A, cfg.network.actor_cells), NormalParamExtractor())
+        actor = ProbabilisticActor(
+            TensorDictModule(net, in_keys=["observation"], out_keys=["loc", "scale"]),
+            in_keys=["loc", "scale"],
+            spec=spec,
+            distribution_class=TanhNormal,
+            distribution_kwargs={"low": spec.space.low, "high": spec.space.high},
+            default_interaction_type=ExplorationType.RANDOM,
+        )
+        return actor, actor
+    actor = TensorDictSequential(
+        TensorDictModule(
+            _mlp(cfg, S, A, cfg.network.actor_cells), in_keys=["observation"], out_keys=["param"]
+        ),
+        TanhModule(in_keys=["param"], out_keys=["action"], spec=spec),
+    )
+    noise = EpsilonGaussianModule(
+        spec, sigma=cfg.exploration.sigma, epsilon=cfg.exploration.epsilon
+    )
+    return actor, TensorDictSequential(actor, noise)
+
+
+def make_critic(cfg: DictConfig, env) -> ValueOperator:
     S = env.observation_spec["observation"].shape[-1]
     A = env.action_spec.shape[-1]
-    hidden = cfg.network.num_layers - 1  # paper: 4 FC layers including the output layer
-    actor = Actor(
-        nn.Sequential(
-            MLP(
-                in_features=S,
-                out_features=A,
-                num_cells=[cfg.network.actor_cells] * hidden,
-                activation_class=nn.ReLU,
-            ),
-            nn.Tanh(),
-        ),
-        spec=env.action_spec,
+    return ValueOperator(
+        _mlp(cfg, S + A, 1, cfg.network.critic_cells), in_keys=["observation", "action"]
     )
-    critic = ValueOperator(
-        MLP(
-            in_features=S + A,
-            out_features=1,
-            num_cells=[cfg.network.critic_cells] * hidden,
-            activation_class=nn.ReLU,
-        ),
-        in_keys=["observation", "action"],
-    )
-    exploration = TensorDictSequential(
-        actor,
-        AdditiveGaussianModule(
-            spec=env.action_spec,
-            sigma_init=cfg.exploration.sigma,
-            sigma_end=cfg.exploration.sigma,
-            annealing_num_steps=1,
-        ),
-    )
-    return actor, critic, exploration
 
 
 def make_world_model(cfg: DictConfig, env) -> WorldModelEnsemble:
@@ -82,60 +253,198 @@ def make_world_model(cfg: DictConfig, env) -> WorldModelEnsemble:
     )
 
 
-def make_losses(cfg: DictConfig, env, actor, critic, world_model):
-    # TD3Loss holds K stacked critics; without target smoothing noise it is DDPG on a
-    # K-critic ensemble, and the RAVE estimator replaces its target.
-    loss = TD3Loss(
-        actor,
-        critic,
-        action_spec=env.action_spec,
-        num_qvalue_nets=cfg.network.num_critics,
-        policy_noise=0.0,
-        noise_clip=0.0,
-        loss_function="l2",
-    )
-    updater = SoftUpdate(loss, tau=cfg.optim.tau)
-    e = cfg.estimator
-    kwargs = dict(world_model=world_model, gamma=cfg.optim.gamma, horizon=e.horizon)
-    if e.name == "rave":
-        kwargs.update(
-            alpha=e.alpha, adaptive_alpha=e.adaptive_alpha, alpha_error_scale=e.alpha_error_scale
+def make_loss(cfg: DictConfig, env, algo: Algorithm, actor, critic, world_model):
+    """The TorchRL loss with its target estimator, and the soft target updater."""
+    K = num_critics(cfg, algo)
+    if algo.loss == "sac":
+        loss = SACLoss(
+            actor, critic, num_qvalue_nets=K, loss_function="l2", action_spec=env.action_spec
         )
-    loss.make_value_estimator(make_value_expansion_estimator(e.name, loss, **kwargs))
-    return loss, updater, WorldModelLoss(world_model)
+    elif algo.loss == "td3":
+        loss = TD3Loss(
+            actor,
+            critic,
+            action_spec=env.action_spec,
+            num_qvalue_nets=K,
+            policy_noise=cfg.td3.policy_noise,
+            noise_clip=cfg.td3.noise_clip,
+            loss_function="l2",
+        )
+    else:
+        loss = EnsembleDDPGLoss(actor, critic, action_spec=env.action_spec, num_qvalue_nets=K)
+    if algo.estimator is None:
+        loss.make_value_estimator(ValueEstimators.TD0, gamma=cfg.optim.gamma)
+    else:
+        e = cfg.estimator
+        kwargs = dict(world_model=world_model, gamma=cfg.optim.gamma, horizon=e.horizon)
+        if algo.estimator == "rave":
+            kwargs.update(
+                alpha=e.alpha,
+                adaptive_alpha=algo.adaptive_alpha,
+                alpha_error_scale=e.alpha_error_scale,
+            )
+        loss.make_value_estimator(make_value_expansion_estimator(algo.estimator, loss, **kwargs))
+    return loss, SoftUpdate(loss, tau=cfg.optim.tau)
 
 
-def make_collector(cfg: DictConfig, env, policy, device) -> Collector:
+def make_optimizers(cfg: DictConfig, loss, world_model) -> dict[str, torch.optim.Optimizer]:
+    optimizers = {
+        "actor": torch.optim.Adam(
+            loss.actor_network_params.values(True, True), lr=cfg.optim.lr_actor
+        ),
+        "critic": torch.optim.Adam(
+            loss.qvalue_network_params.values(True, True), lr=cfg.optim.lr_critic
+        ),
+    }
+    if isinstance(loss, SACLoss):
+        optimizers["alpha"] = torch.optim.Adam([loss.log_alpha], lr=cfg.optim.lr_alpha)
+    if world_model is not None:
+        optimizers["world_model"] = torch.optim.Adam(
+            world_model.parameters(), lr=cfg.world_model.lr
+        )
+    return optimizers
+
+
+def make_world_model_loss(world_model: WorldModelEnsemble | None) -> WorldModelLoss | None:
+    return None if world_model is None else WorldModelLoss(world_model)
+
+
+def make_collector(cfg: DictConfig, env, policy, device, frames_done: int = 0) -> Collector:
+    """A collector for the frames still to go (``frames_done`` > 0 when resuming)."""
+    remaining = cfg.collector.total_frames - frames_done
     return Collector(
         env,
         policy,
-        frames_per_batch=cfg.collector.frames_per_batch,
-        total_frames=cfg.collector.total_frames,
-        init_random_frames=cfg.collector.init_random_frames,
+        frames_per_batch=min(cfg.collector.frames_per_batch, remaining),
+        total_frames=remaining,
+        init_random_frames=max(0, cfg.collector.init_random_frames - frames_done),
         device=device,
     )
 
 
 def make_replay_buffer(cfg: DictConfig, device) -> TensorDictReplayBuffer:
     return TensorDictReplayBuffer(
-        storage=LazyTensorStorage(cfg.replay_buffer.size, device=device),
+        storage=LazyTensorStorage(replay_buffer_size(cfg), device=device),
         batch_size=cfg.replay_buffer.batch_size,
     )
 
 
+def make_logger(cfg: DictConfig, run_dir: str, state: dict | None = None) -> Logger | None:
+    if not cfg.logger.backend:
+        return None
+    return get_logger(
+        cfg.logger.backend,
+        logger_name=str(run_dir),
+        experiment_name=cfg.logger.exp_name or cfg.algorithm,
+        state_dict=state,
+        wandb_kwargs={"project": cfg.logger.project, "config": OmegaConf.to_container(cfg)},
+    )
+
+
+# --------------------------------------------------------------------------- evaluation
 @torch.no_grad()
 def evaluate(env, actor, episodes: int) -> dict[str, float]:
-    from torchrl.envs.utils import ExplorationType, set_exploration_type
-
-    returns, lengths = [], []
+    """Deterministic-policy episodes: return mean/std, length, and the falling rate."""
+    returns, lengths, falls = [], [], []
     with set_exploration_type(ExplorationType.DETERMINISTIC):
         for _ in range(episodes):
-            rollout = env.rollout(10_000, actor, break_when_any_done=True)
+            rollout = env.rollout(1_000_000, actor, break_when_any_done=True)
             returns.append(rollout["next", "episode_reward"][-1].item())
             lengths.append(rollout["next", "step_count"][-1].item())
+            # terminated (fell) rather than truncated by the time limit
+            falls.append(float(rollout["next", "terminated"][-1].item()))
     r = torch.tensor(returns)
     return {
         "eval/return": r.mean().item(),
         "eval/return_std": r.std(unbiased=False).item(),
-        "eval/episode_length": sum(lengths) / len(lengths),
+        "eval/episode_length": float(np.mean(lengths)),
+        "eval/falling_rate": float(np.mean(falls)),
     }
+
+
+class NonFiniteEnvOutput(RuntimeError):
+    """The environment produced NaN or infinite observations or rewards."""
+
+
+def check_finite(data: TensorDictBase) -> str | None:
+    """Names the first collected entry holding NaN/inf, or ``None`` when all are finite."""
+    for key in ("observation", ("next", "observation"), ("next", "reward")):
+        if not bool(torch.isfinite(data[key]).all()):
+            return str(key)
+    return None
+
+
+# --------------------------------------------------------------------------- checkpoints
+def rng_state() -> dict:
+    state = {
+        "torch": torch.get_rng_state(),
+        "numpy": np.random.get_state(),
+        "python": random.getstate(),
+    }
+    if torch.cuda.is_available():
+        state["cuda"] = torch.cuda.get_rng_state_all()
+    return state
+
+
+def set_rng_state(state: dict) -> None:
+    torch.set_rng_state(state["torch"])
+    np.random.set_state(state["numpy"])
+    random.setstate(state["python"])
+    if "cuda" in state and torch.cuda.is_available():
+        torch.cuda.set_rng_state_all(state["cuda"])
+
+
+class Checkpointer:
+    """Writes ``<run_dir>/checkpoints/<frames>/`` (``state.pt`` + the replay buffer dumped with
+    TorchRL's ``ReplayBuffer.dumps``) and then points ``checkpoints/latest`` at it.
+
+    The pointer file is replaced atomically after the new checkpoint is complete, so a kill
+    at any moment leaves the previous checkpoint valid; older checkpoints are removed once the
+    pointer has moved.
+    """
+
+    def __init__(self, run_dir: str | os.PathLike) -> None:
+        self.root = Path(run_dir) / "checkpoints"
+
+    def latest(self) -> Path | None:
+        pointer = self.root / "latest"
+        if not pointer.exists():
+            return None
+        return self.root / pointer.read_text().strip()
+
+    def save(self, state: dict, replay_buffer: TensorDictReplayBuffer) -> Path:
+        name = f"{state['counters']['frames']:012d}"
+        path = self.root / name
+        if path.exists():  # a stale, incomplete write from a killed run
+            shutil.rmtree(path)
+        path.mkdir(parents=True)
+        torch.save(state, path / "state.pt")
+        replay_buffer.dumps(path / "replay_buffer")
+        tmp = self.root / "latest.tmp"
+        tmp.write_text(name)
+        os.replace(tmp, self.root / "latest")
+        for old in self.root.iterdir():
+            if old.is_dir() and old.name != name:
+                shutil.rmtree(old)
+        return path
+
+    def load(self, replay_buffer: TensorDictReplayBuffer) -> dict:
+        path = self.latest()
+        if path is None:
+            raise FileNotFoundError(f"no checkpoint under {self.root} (resume needs one)")
+        replay_buffer.loads(path / "replay_buffer")
+        return torch.load(path / "state.pt", weights_only=False)
+
+
+def config_for_resume(run_dir: str, overrides: list[str]) -> DictConfig:
+    """The config a run was saved with, with command-line ``overrides`` applied on top."""
+    path = Checkpointer(run_dir).latest()
+    if path is None:
+        raise FileNotFoundError(
+            f"resume={run_dir!r}: no checkpoint found under {run_dir}/checkpoints"
+        )
+    saved = OmegaConf.create(torch.load(path / "state.pt", weights_only=False)["config"])
+    keep = [o for o in overrides if o.split("=", 1)[0].lstrip("+~") not in ("resume", "preset")]
+    cfg = OmegaConf.merge(saved, OmegaConf.from_dotlist(keep))
+    cfg.resume = str(run_dir)
+    return cfg

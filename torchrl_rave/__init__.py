@@ -16,8 +16,9 @@ from torchrl_rave._compat import patch_value_estimator_setter
 
 patch_value_estimator_setter()
 
-from torchrl_rave.modules import WorldModelEnsemble  # noqa: E402
+from torchrl_rave.modules import EpsilonGaussianModule, WorldModelEnsemble  # noqa: E402
 from torchrl_rave.objectives import (  # noqa: E402
+    EnsembleDDPGLoss,
     MVEEstimator,
     RAVEValueEstimator,
     STEVEEstimator,
@@ -31,6 +32,8 @@ __version__ = "0.1.0"
 
 __all__ = [
     "AdaptiveAlpha",
+    "EnsembleDDPGLoss",
+    "EpsilonGaussianModule",
     "WorldModelEnsemble",
     "WorldModelLoss",
     "ValueExpansionEstimator",

@@ -1,12 +1,14 @@
 """TensorDict modules: the probabilistic world-model ensemble and its building blocks."""
 
 from torchrl_rave.modules.ensemble import EnsembleLinear, EnsembleMLP, GaussianEnsembleMLP
+from torchrl_rave.modules.exploration import EpsilonGaussianModule
 from torchrl_rave.modules.normalizer import RunningNormalizer
 from torchrl_rave.modules.world_model import WorldModelEnsemble
 
 __all__ = [
     "EnsembleLinear",
     "EnsembleMLP",
+    "EpsilonGaussianModule",
     "GaussianEnsembleMLP",
     "RunningNormalizer",
     "WorldModelEnsemble",

@@ -1,6 +1,7 @@
 """Losses and value estimators: world-model NLL, MVE / STEVE / RAVE targets."""
 
 from torchrl_rave.objectives import functional
+from torchrl_rave.objectives.ensemble_ddpg import EnsembleDDPGLoss
 from torchrl_rave.objectives.value_expansion import (
     MVEEstimator,
     RAVEValueEstimator,
@@ -12,6 +13,7 @@ from torchrl_rave.objectives.world_model_loss import WorldModelLoss, gaussian_nl
 
 __all__ = [
     "functional",
+    "EnsembleDDPGLoss",
     "MVEEstimator",
     "RAVEValueEstimator",
     "STEVEEstimator",
