@@ -162,19 +162,21 @@ def train(cfg: DictConfig, run_dir: str) -> dict[str, float]:
         return out
 
     policy_delay = cfg.td3.policy_delay if algo.loss == "td3" else 1
-    start_frames = cfg.collector.init_random_frames
+    start_frames = max(cfg.collector.init_random_frames, cfg.replay_buffer.batch_size)
     if algo.model_based:
         start_frames = max(start_frames, cfg.world_model.pretrain_frames)
 
     def train_on_batch(n_frames: int) -> dict[str, torch.Tensor]:
         acc = defaultdict(list)
-        if counters["frames"] < max(start_frames, cfg.replay_buffer.batch_size):
+        if counters["frames"] < start_frames:
             return acc
         if algo.model_based and not counters["pretrained"]:
             for _ in range(cfg.world_model.pretrain_updates):
                 world_model_step()
             counters["pretrained"] = True
-        counters["update_budget"] += cfg.optim.utd_ratio * n_frames
+        # utd_ratio updates per frame collected after the start
+        new_frames = min(n_frames, counters["frames"] - start_frames)
+        counters["update_budget"] += cfg.optim.utd_ratio * new_frames
         n_updates = int(counters["update_budget"])
         counters["update_budget"] -= n_updates
         for _ in range(n_updates):

@@ -319,6 +319,7 @@ def make_collector(cfg: DictConfig, env, policy, device, frames_done: int = 0) -
         total_frames=remaining,
         init_random_frames=max(0, cfg.collector.init_random_frames - frames_done),
         device=device,
+        auto_register_policy_transforms=False,  # our policies keep no recurrent state
     )
 
 

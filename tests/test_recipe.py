@@ -1,0 +1,286 @@
+"""The training recipe: every algorithm end to end, config errors, checkpoints and resume,
+determinism, NaN handling, and a learning check on InvertedPendulum-v5."""
+
+from __future__ import annotations
+
+import csv
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import gymnasium as gym
+import numpy as np
+import pytest
+import torch
+from hydra import compose, initialize_config_dir
+from omegaconf import OmegaConf
+
+RECIPES = Path(__file__).resolve().parents[1] / "recipes"
+sys.path.insert(0, str(RECIPES))
+
+import rave_mujoco  # noqa: E402
+import utils as recipe_utils  # noqa: E402
+
+# Budgets of a few hundred frames: every code path runs, nothing is expected to learn.
+TINY = [
+    "collector.total_frames=400",
+    "collector.frames_per_batch=100",
+    "collector.init_random_frames=100",
+    "world_model.pretrain_frames=200",
+    "world_model.pretrain_updates=3",
+    "world_model.transition_cells=16",
+    "world_model.reward_cells=16",
+    "world_model.termination_cells=16",
+    "network.actor_cells=16",
+    "network.critic_cells=16",
+    "replay_buffer.batch_size=32",
+    "optim.utd_ratio=0.1",
+    "eval.interval=200",
+    "eval.episodes=2",
+    "checkpoint.interval=200",
+    "logger.progress_bar=false",
+]
+
+
+def make_cfg(*overrides: str):
+    with initialize_config_dir(config_dir=str(RECIPES), version_base="1.3"):
+        return compose("config", overrides=list(overrides))
+
+
+def read_scalar(run_dir: Path, name: str, exp: str) -> list[tuple[int, float]]:
+    with open(run_dir / exp / "scalars" / f"{name}.csv") as f:
+        return [(int(step), float(value)) for step, value in csv.reader(f)]
+
+
+class TestAlgorithms:
+    @pytest.mark.parametrize(
+        "algorithm", ["ddpg", "mve", "steve", "rave", "rave_constant", "td3", "sac"]
+    )
+    def test_smoke_hopper(self, algorithm, tmp_path):
+        cfg = make_cfg(f"algorithm={algorithm}", "env.name=Hopper-v5", *TINY)
+        results = rave_mujoco.train(cfg, str(tmp_path))
+        assert results["frames"] == 400
+        # updates start at F (model-based) or after the random frames, 0.1 per frame
+        start = 200 if algorithm in ("mve", "steve", "rave", "rave_constant") else 100
+        assert results["updates"] == int(0.1 * (400 - start))
+        assert 0.0 <= results["eval/falling_rate"] <= 1.0
+        assert np.isfinite(results["eval/return"])
+        evals = read_scalar(tmp_path, "eval/return", algorithm)
+        assert [step for step, _ in evals] == [200, 400]
+        critic = read_scalar(tmp_path, "train/loss_critic", algorithm)
+        assert all(np.isfinite(v) for _, v in critic)
+        if algorithm in ("steve", "rave", "rave_constant"):
+            w = [read_scalar(tmp_path, f"train/horizon_weight_h{h}", algorithm) for h in range(4)]
+            # per-sample weights sum to one, so their batch means do too
+            total = [sum(col[i][1] for col in w) for i in range(len(w[0]))]
+            assert np.allclose(total, 1.0, atol=1e-5)
+        if algorithm == "rave_constant":
+            alphas = read_scalar(tmp_path, "train/alpha", algorithm)
+            assert all(v == pytest.approx(1.5) for _, v in alphas)
+        if algorithm == "rave":
+            alphas = read_scalar(tmp_path, "train/alpha", algorithm)
+            assert all(0.0 <= v <= 1.5 for _, v in alphas)
+
+    def test_ddpg_has_one_critic_and_rave_four(self, tmp_path):
+        env = recipe_utils.make_env(make_cfg(*TINY), torch.device("cpu"))
+        for name, k in [("ddpg", 1), ("rave", 4), ("td3", 2), ("sac", 2)]:
+            cfg = make_cfg(f"algorithm={name}", *TINY)
+            algo = recipe_utils.ALGORITHMS[name]
+            actor, _ = recipe_utils.make_actor(cfg, env, algo)
+            wm = recipe_utils.make_world_model(cfg, env) if algo.model_based else None
+            loss, _ = recipe_utils.make_loss(
+                cfg, env, algo, actor, recipe_utils.make_critic(cfg, env), wm
+            )
+            assert loss.num_qvalue_nets == k
+
+
+class TestExploration:
+    def test_actor_spans_the_action_box(self):
+        # InvertedPendulum's actions lie in [-3, 3]; a tanh actor must reach past +-1.
+        cfg = make_cfg(*TINY)
+        env = recipe_utils.make_env(cfg, torch.device("cpu"))
+        actor, _ = recipe_utils.make_actor(cfg, env, recipe_utils.ALGORITHMS["rave"])
+        td = env.reset()
+        with torch.no_grad():
+            actor[0].module[-1].bias.fill_(100.0)  # saturate the tanh
+            assert actor(td)["action"].item() == pytest.approx(3.0)
+
+    def test_epsilon_noise_rate_in_collected_data(self):
+        cfg = make_cfg(*TINY, "exploration.epsilon=0.05", "exploration.sigma=0.5")
+        env = recipe_utils.make_env(cfg, torch.device("cpu"))
+        actor, policy = recipe_utils.make_actor(cfg, env, recipe_utils.ALGORITHMS["rave"])
+        torch.manual_seed(0)
+        td = env.reset().expand(4000).clone()
+        from torchrl.envs.utils import ExplorationType, set_exploration_type
+
+        with torch.no_grad(), set_exploration_type(ExplorationType.RANDOM):
+            noisy = policy(td.clone())["action"]
+            clean = actor(td.clone())["action"]
+        rate = (noisy != clean).float().mean().item()
+        assert 0.04 < rate < 0.06
+
+
+class TestConfigErrors:
+    @pytest.mark.parametrize(
+        "override, message",
+        [
+            ("algorithm=ppo", "algorithm='ppo'.*one of \\['ddpg', 'mve'"),
+            ("env.name=Hoper-v5", "env.name='Hoper-v5' is not a registered gymnasium id"),
+            ("collector.total_frames=-5", "collector.total_frames=-5 is invalid"),
+            ("collector.frames_per_batch=0", "collector.frames_per_batch=0"),
+            ("replay_buffer.batch_size=100000", "replay_buffer.batch_size=100000.*<= the replay"),
+            ("estimator.horizon=-1", "estimator.horizon=-1"),
+            ("exploration.epsilon=1.5", "exploration.epsilon=1.5"),
+            ("logger.backend=mlflow", "logger.backend='mlflow'.*one of"),
+            ("network.num_critics=0", "network.num_critics=0"),
+        ],
+    )
+    def test_bad_value_named_before_training(self, override, message, tmp_path):
+        cfg = make_cfg(*TINY, override)
+        with pytest.raises(ValueError, match=message):
+            rave_mujoco.train(cfg, str(tmp_path))
+        assert not (tmp_path / "checkpoints").exists()
+
+    def test_unknown_preset_lists_choices(self):
+        with pytest.raises(Exception, match="(?s)preset/fast.*Available options.*cpu.*paper"):
+            make_cfg("preset=fast")
+
+    def test_unknown_key(self):
+        with pytest.raises(Exception, match="estimator.hoirzon"):
+            make_cfg("estimator.hoirzon=3")
+
+    def test_paper_preset_values(self):
+        cfg = make_cfg("preset=paper")
+        assert cfg.replay_buffer.batch_size == 512
+        assert cfg.replay_buffer.size == 1_000_000
+        assert cfg.world_model.pretrain_frames == 10_000
+        assert cfg.world_model.transition_layers == 8
+        assert cfg.exploration.epsilon == 0.05
+        assert cfg.estimator.alpha == 1.5 and cfg.estimator.horizon == 3
+        # command-line overrides still win over the preset
+        assert (
+            make_cfg("preset=paper", "replay_buffer.batch_size=64").replay_buffer.batch_size == 64
+        )
+
+
+class _NaNAfter(gym.Wrapper):
+    """Returns a NaN observation from the 150th step on."""
+
+    def __init__(self, env):
+        super().__init__(env)
+        self.steps = 0
+
+    def step(self, action):
+        obs, reward, terminated, truncated, info = self.env.step(action)
+        self.steps += 1
+        if self.steps >= 150:
+            obs = np.full_like(obs, np.nan)
+        return obs, reward, terminated, truncated, info
+
+
+def _nan_pendulum():
+    return _NaNAfter(gym.make("InvertedPendulum-v5"))
+
+
+gym.register("NaNInvertedPendulum-v0", entry_point=_nan_pendulum, max_episode_steps=1000)
+
+
+class TestCheckpoints:
+    def test_nan_observation_stops_with_checkpoint(self, tmp_path):
+        # the policy is random for the first frames, so make episodes long with many
+        # resets impossible to avoid: count steps across episodes in the wrapper
+        cfg = make_cfg(*TINY, "env.name=NaNInvertedPendulum-v0", "algorithm=ddpg")
+        with pytest.raises(recipe_utils.NonFiniteEnvOutput, match="NaN/inf in .*observation"):
+            rave_mujoco.train(cfg, str(tmp_path))
+        ckpt = recipe_utils.Checkpointer(tmp_path).latest()
+        state = torch.load(ckpt / "state.pt", weights_only=False)
+        assert state["counters"]["frames"] == 100  # the last good batch
+        rb = recipe_utils.make_replay_buffer(cfg, "cpu")
+        recipe_utils.Checkpointer(tmp_path).load(rb)
+        assert len(rb) == 100
+        assert torch.isfinite(rb[:100]["next", "observation"]).all()
+
+    def test_kill_and_resume_continues_exactly(self, tmp_path):
+        """Kill a run (SIGKILL) after its first checkpoint, resume it, and check that frames,
+        replay-buffer contents and optimiser state carry over exactly."""
+        overrides = [
+            *TINY,
+            "algorithm=rave",
+            "collector.total_frames=3000",
+            "checkpoint.interval=300",
+            "eval.interval=3000",
+        ]
+        script = RECIPES / "rave_mujoco.py"
+        proc = subprocess.Popen(
+            [sys.executable, str(script), *overrides, f"hydra.run.dir={tmp_path}"],
+            stdout=subprocess.DEVNULL,
+            stderr=subprocess.DEVNULL,
+        )
+        checkpointer = recipe_utils.Checkpointer(tmp_path)
+        deadline = time.time() + 240
+        while checkpointer.latest() is None and proc.poll() is None and time.time() < deadline:
+            time.sleep(0.2)
+        os.kill(proc.pid, signal.SIGKILL)
+        proc.wait()
+        first = checkpointer.latest()
+        assert first is not None, "the run died before writing its first checkpoint"
+        saved = torch.load(first / "state.pt", weights_only=False)
+        f0 = saved["counters"]["frames"]
+        assert f0 % 300 == 0 and 300 <= f0 < 3000
+        cfg = make_cfg(*overrides)
+        saved_rb = recipe_utils.make_replay_buffer(cfg, "cpu")
+        saved_rb.loads(first / "replay_buffer")
+        saved_obs = saved_rb[:f0]["observation"].clone()
+        saved_steps = saved["optimizers"]["critic"]["state"][0]["step"].item()
+
+        results = rave_mujoco.train(make_cfg(*overrides, f"resume={tmp_path}"), "unused")
+        assert results["frames"] == 3000
+        final = torch.load(checkpointer.latest() / "state.pt", weights_only=False)
+        assert final["counters"]["frames"] == 3000
+        rb = recipe_utils.make_replay_buffer(cfg, "cpu")
+        rb.loads(checkpointer.latest() / "replay_buffer")
+        assert len(rb) == 3000
+        assert torch.equal(rb[:f0]["observation"], saved_obs)  # old data kept, in place
+        # Adam's step count carries on from the checkpoint: a reset optimiser would be
+        # short by exactly the saved count.
+        new_updates = round(0.1 * (3000 - f0))
+        assert final["optimizers"]["critic"]["state"][0]["step"].item() == saved_steps + new_updates
+        assert final["counters"]["updates"] == saved["counters"]["updates"] + new_updates
+        evals = read_scalar(tmp_path, "eval/return", "rave")
+        assert evals[-1][0] == 3000
+
+    def test_resume_of_a_finished_run_reproduces_its_evaluation(self, tmp_path):
+        # Resuming from the final checkpoint collects nothing and evaluates the restored
+        # policy with the same evaluation seed: a policy not restored exactly would give a
+        # different (continuous-valued) Hopper return.
+        overrides = [*TINY, "algorithm=steve", "env.name=Hopper-v5", "collector.total_frames=300"]
+        first = rave_mujoco.train(make_cfg(*overrides), str(tmp_path))
+        again = rave_mujoco.train(make_cfg(*overrides, f"resume={tmp_path}"), "unused")
+        assert again["frames"] == 300 and again["updates"] == first["updates"]
+        assert again["eval/return"] == first["eval/return"]
+        saved = torch.load(
+            recipe_utils.Checkpointer(tmp_path).latest() / "state.pt", weights_only=False
+        )
+        # the world-model normalisers saw all 300 stored frames, and the resolved buffer
+        # size is part of the saved config
+        assert saved["world_model"]["obs_norm.count"].item() == 300
+        assert OmegaConf.create(saved["config"]).replay_buffer.size == 300
+
+
+class TestDeterminism:
+    def test_same_seed_same_losses(self, tmp_path):
+        overrides = [*TINY, "algorithm=rave", "collector.total_frames=300", "optim.utd_ratio=0.2"]
+        for run in ("a", "b"):
+            rave_mujoco.train(make_cfg(*overrides), str(tmp_path / run))
+        for name in ("train/loss_critic", "train/loss_actor", "train/wm_transition_nll"):
+            a = read_scalar(tmp_path / "a", name, "rave")
+            b = read_scalar(tmp_path / "b", name, "rave")
+            assert len(a) >= 1 and a == b, name
+        c_dir = tmp_path / "c"
+        rave_mujoco.train(make_cfg(*overrides, "env.seed=1"), str(c_dir))
+        assert read_scalar(c_dir, "train/loss_critic", "rave") != read_scalar(
+            tmp_path / "a", "train/loss_critic", "rave"
+        )
