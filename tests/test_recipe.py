@@ -284,3 +284,33 @@ class TestDeterminism:
         assert read_scalar(c_dir, "train/loss_critic", "rave") != read_scalar(
             tmp_path / "a", "train/loss_critic", "rave"
         )
+
+
+class TestCompare:
+    def test_grid_runs_skips_finished_and_tabulates(self, tmp_path, capsys):
+        import compare
+
+        tiny = [o for o in TINY if not o.startswith("collector.total_frames")]
+        args = ["--envs", "InvertedPendulum-v5", "--algorithms", "ddpg", "--seeds", "0", "1"]
+        args += ["--frames", "300", "--out", str(tmp_path), "--", *tiny]
+        compare.main(args)
+        printed = capsys.readouterr().out
+        values = [
+            compare.final_eval(
+                compare.run_dir(tmp_path, "InvertedPendulum-v5", "ddpg", s), "ddpg", 300
+            )
+            for s in (0, 1)
+        ]
+        assert all(v is not None for v in values)
+        row = f"| InvertedPendulum-v5 | ddpg | {np.mean(values):.0f} ± {np.std(values):.0f} | 2 |"
+        assert row in printed
+        compare.main(args)  # both runs finished: nothing relaunched
+        assert "runs to go" not in capsys.readouterr().out
+
+    def test_reference_column_is_labelled(self, tmp_path):
+        import compare
+
+        text = compare.table(tmp_path, ["Hopper-v5"], ["ddpg", "rave"], [0], 1000)
+        assert "not our runs" in text
+        assert "| Hopper-v5 | ddpg | n/a | 0 | 904 / 1241 / 1604 |" in text
+        assert "| Hopper-v5 | rave | n/a | 0 |  |" in text
