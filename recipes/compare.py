@@ -55,7 +55,8 @@ def final_eval(path: Path, algorithm: str, frames: int) -> float | None:
     scalars = path / algorithm / "scalars" / "eval" / "return.csv"
     if not scalars.exists():
         return None
-    rows = [(int(s), float(v)) for s, v in csv.reader(open(scalars))]
+    with open(scalars) as f:
+        rows = [(int(s), float(v)) for s, v in csv.reader(f)]
     done = [v for s, v in rows if s == frames]
     return done[-1] if done else None
 
