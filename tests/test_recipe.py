@@ -314,3 +314,15 @@ class TestCompare:
         assert "not our runs" in text
         assert "| Hopper-v5 | ddpg | n/a | 0 | 904 / 1241 / 1604 |" in text
         assert "| Hopper-v5 | rave | n/a | 0 |  |" in text
+
+
+class TestLearning:
+    @pytest.mark.slow
+    def test_rave_default_run_solves_inverted_pendulum(self, tmp_path):
+        """The default command (RAVE, InvertedPendulum-v5, 15,000 frames, seed 0) reaches a
+        mean deterministic return >= 900 (the maximum is 1000). About 5 minutes on 2 cores."""
+        cfg = make_cfg("eval.episodes=10", "logger.progress_bar=false")
+        assert cfg.collector.total_frames == 15_000 and cfg.algorithm == "rave"
+        results = rave_mujoco.train(cfg, str(tmp_path))
+        assert results["eval/return"] >= 900
+        assert results["eval/falling_rate"] <= 0.1
