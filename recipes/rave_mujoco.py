@@ -30,6 +30,7 @@ from utils import (  # noqa: E402
     NonFiniteEnvOutput,
     check_config,
     check_finite,
+    check_resumable,
     config_for_resume,
     evaluate,
     make_actor,
@@ -44,6 +45,7 @@ from utils import (  # noqa: E402
     make_world_model_loss,
     replay_buffer_size,
     rng_state,
+    saved_config,
     set_rng_state,
 )
 
@@ -81,10 +83,13 @@ def train(cfg: DictConfig, run_dir: str) -> dict[str, float]:
     """Runs (or, with ``cfg.resume`` set, continues) one training run; returns the final
     evaluation metrics. Everything is written under ``run_dir``."""
     algo = check_config(cfg)
+    cfg = cfg.copy()
     if cfg.resume:
         run_dir = cfg.resume
-    cfg = cfg.copy()
-    cfg.replay_buffer.size = replay_buffer_size(cfg)  # fixed once, so resuming keeps it
+        check_resumable(cfg, saved_config(run_dir))
+        cfg.replay_buffer.size = saved_config(run_dir).replay_buffer.size
+    else:
+        cfg.replay_buffer.size = replay_buffer_size(cfg)  # fixed once, so resuming keeps it
     device = torch.device(cfg.collector.device or ("cuda" if torch.cuda.is_available() else "cpu"))
     torch.manual_seed(cfg.env.seed)
 

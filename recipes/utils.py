@@ -437,14 +437,45 @@ class Checkpointer:
         return torch.load(path / "state.pt", weights_only=False)
 
 
-def config_for_resume(run_dir: str, overrides: list[str]) -> DictConfig:
-    """The config a run was saved with, with command-line ``overrides`` applied on top."""
+def saved_config(run_dir: str) -> DictConfig:
+    """The config stored in a run's latest checkpoint."""
     path = Checkpointer(run_dir).latest()
     if path is None:
         raise FileNotFoundError(
             f"resume={run_dir!r}: no checkpoint found under {run_dir}/checkpoints"
         )
-    saved = OmegaConf.create(torch.load(path / "state.pt", weights_only=False)["config"])
+    return OmegaConf.create(torch.load(path / "state.pt", weights_only=False)["config"])
+
+
+# Keys that shape the saved modules, buffers or algorithm: a resumed run cannot change them.
+FIXED_ON_RESUME = [
+    "algorithm",
+    "env.name",
+    "network",
+    "world_model.num_models",
+    "world_model.transition_cells",
+    "world_model.transition_layers",
+    "world_model.reward_cells",
+    "world_model.reward_layers",
+    "world_model.termination_cells",
+    "world_model.termination_layers",
+    "estimator.horizon",
+]
+
+
+def check_resumable(cfg: DictConfig, saved: DictConfig) -> None:
+    for key in FIXED_ON_RESUME:
+        new, old = OmegaConf.select(cfg, key), OmegaConf.select(saved, key)
+        if new != old:
+            raise ValueError(
+                f"resume={cfg.resume!r}: config key {key} is {new!r} but the run was "
+                f"started with {old!r}; it cannot change on resume"
+            )
+
+
+def config_for_resume(run_dir: str, overrides: list[str]) -> DictConfig:
+    """The config a run was saved with, with command-line ``overrides`` applied on top."""
+    saved = saved_config(run_dir)
     keep = [o for o in overrides if o.split("=", 1)[0].lstrip("+~") not in ("resume", "preset")]
     cfg = OmegaConf.merge(saved, OmegaConf.from_dotlist(keep))
     cfg.resume = str(run_dir)

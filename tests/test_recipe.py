@@ -269,6 +269,14 @@ class TestCheckpoints:
         assert saved["world_model"]["obs_norm.count"].item() == 300
         assert OmegaConf.create(saved["config"]).replay_buffer.size == 300
 
+    def test_resume_refuses_a_different_algorithm(self, tmp_path):
+        overrides = [*TINY, "algorithm=ddpg", "collector.total_frames=200"]
+        rave_mujoco.train(make_cfg(*overrides), str(tmp_path))
+        with pytest.raises(
+            ValueError, match="algorithm is 'td3' but the run was started with 'ddpg'"
+        ):
+            rave_mujoco.train(make_cfg(*overrides, "algorithm=td3", f"resume={tmp_path}"), "x")
+
 
 class TestDeterminism:
     def test_same_seed_same_losses(self, tmp_path):
@@ -326,3 +334,35 @@ class TestLearning:
         results = rave_mujoco.train(cfg, str(tmp_path))
         assert results["eval/return"] >= 900
         assert results["eval/falling_rate"] <= 0.1
+
+
+class TestLoggers:
+    def test_tensorboard_events_hold_the_evaluation(self, tmp_path):
+        pytest.importorskip("tensorboard")
+        from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+        cfg = make_cfg(*TINY, "algorithm=ddpg", "logger.backend=tensorboard")
+        results = rave_mujoco.train(cfg, str(tmp_path))
+        events = EventAccumulator(str(tmp_path / "ddpg")).Reload()
+        scalars = events.Scalars("eval/return")
+        assert [e.step for e in scalars] == [200, 400]
+        assert scalars[-1].value == pytest.approx(results["eval/return"])
+
+    def test_wandb_offline_run_resumes_same_run(self, tmp_path, monkeypatch):
+        pytest.importorskip("wandb")
+        monkeypatch.setenv("WANDB_MODE", "offline")
+        monkeypatch.setenv("WANDB_DIR", str(tmp_path))
+        monkeypatch.setenv("WANDB_SILENT", "true")
+        overrides = [*TINY, "algorithm=ddpg", "logger.backend=wandb", "collector.total_frames=200"]
+        rave_mujoco.train(make_cfg(*overrides), str(tmp_path))
+        saved = torch.load(
+            recipe_utils.Checkpointer(tmp_path).latest() / "state.pt", weights_only=False
+        )
+        run_id = saved["logger"]["local"]["id"]
+        assert run_id
+        overrides[-1] = "collector.total_frames=400"
+        rave_mujoco.train(make_cfg(*overrides, f"resume={tmp_path}"), "unused")
+        resumed = torch.load(
+            recipe_utils.Checkpointer(tmp_path).latest() / "state.pt", weights_only=False
+        )
+        assert resumed["logger"]["local"]["id"] == run_id
