@@ -16,6 +16,7 @@ from torchrl_rave._compat import patch_value_estimator_setter
 
 patch_value_estimator_setter()
 
+from torchrl_rave.envs import ToyEnv, ground_truth_q  # noqa: E402  (registers RAVEToy-v0)
 from torchrl_rave.modules import EpsilonGaussianModule, WorldModelEnsemble  # noqa: E402
 from torchrl_rave.objectives import (  # noqa: E402
     EnsembleDDPGLoss,
@@ -40,5 +41,7 @@ __all__ = [
     "MVEEstimator",
     "STEVEEstimator",
     "RAVEValueEstimator",
+    "ToyEnv",
+    "ground_truth_q",
     "make_value_expansion_estimator",
 ]
