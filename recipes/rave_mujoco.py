@@ -17,6 +17,7 @@ import signal
 import sys
 import time
 from collections import defaultdict
+from collections.abc import Callable
 
 import hydra
 import torch
@@ -49,6 +50,8 @@ from utils import (  # noqa: E402
     set_rng_state,
 )
 
+Probe = Callable[[int, object], dict]
+
 
 class _StopRequest:
     """SIGINT/SIGTERM ask the loop to checkpoint and stop at the end of the current batch;
@@ -79,9 +82,14 @@ def _in_main_thread() -> bool:
     return threading.current_thread() is threading.main_thread()
 
 
-def train(cfg: DictConfig, run_dir: str) -> dict[str, float]:
+def train(cfg: DictConfig, run_dir: str, probe: Probe | None = None) -> dict[str, float]:
     """Runs (or, with ``cfg.resume`` set, continues) one training run; returns the final
-    evaluation metrics. Everything is written under ``run_dir``."""
+    evaluation metrics. Everything is written under ``run_dir``.
+
+    ``probe(frames, loss)``, when given, is called after every collector batch's updates;
+    the scalars it returns are logged with the other metrics (the toy study records its
+    Q-estimates this way).
+    """
     algo = check_config(cfg)
     cfg = cfg.copy()
     if cfg.resume:
@@ -263,6 +271,8 @@ def train(cfg: DictConfig, run_dir: str) -> dict[str, float]:
                     metrics["time/eval_s"] = time.perf_counter() - t_eval
                     while counters["next_eval"] <= frames_now:
                         counters["next_eval"] += cfg.eval.interval
+                if probe is not None:
+                    metrics.update(probe(frames_now, loss))
                 log(metrics)
                 pbar.update(data.numel())
                 if last_eval:

@@ -16,7 +16,14 @@ from tensordict.nn import NormalParamExtractor, TensorDictModule, TensorDictSequ
 from torch import nn
 from torchrl.collectors import Collector
 from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
-from torchrl.envs import DoubleToFloat, GymEnv, RewardSum, StepCounter, TransformedEnv
+from torchrl.envs import (
+    DoubleToFloat,
+    GymEnv,
+    RewardScaling,
+    RewardSum,
+    StepCounter,
+    TransformedEnv,
+)
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 from torchrl.modules import MLP, ProbabilisticActor, TanhModule, TanhNormal, ValueOperator
 from torchrl.objectives import SACLoss, SoftUpdate, TD3Loss, ValueEstimators
@@ -113,6 +120,7 @@ def check_config(cfg: DictConfig) -> Algorithm:
         value = OmegaConf.select(cfg, key)
         _require(float(value) > 0, key, value, "a number > 0")
     _require(float(cfg.optim.utd_ratio) > 0, "optim.utd_ratio", cfg.optim.utd_ratio, "> 0")
+    _require(float(cfg.env.reward_scale) > 0, "env.reward_scale", cfg.env.reward_scale, "> 0")
     _require(0 <= float(cfg.optim.gamma) <= 1, "optim.gamma", cfg.optim.gamma, "in [0, 1]")
     _require(0 < float(cfg.optim.tau) <= 1, "optim.tau", cfg.optim.tau, "in (0, 1]")
     _require(float(cfg.estimator.alpha) >= 0, "estimator.alpha", cfg.estimator.alpha, ">= 0")
@@ -183,9 +191,13 @@ def num_critics(cfg: DictConfig, algo: Algorithm) -> int:
 
 # --------------------------------------------------------------------------- factories
 def make_env(cfg: DictConfig, device: torch.device) -> TransformedEnv:
-    env = TransformedEnv(GymEnv(cfg.env.name, device=device), DoubleToFloat())
+    env = TransformedEnv(
+        GymEnv(cfg.env.name, device=device, **(cfg.env.kwargs or {})), DoubleToFloat()
+    )
     env.append_transform(StepCounter())
-    env.append_transform(RewardSum())
+    env.append_transform(RewardSum())  # before the scaling: returns stay in env units
+    if cfg.env.reward_scale != 1.0:
+        env.append_transform(RewardScaling(loc=0.0, scale=cfg.env.reward_scale))
     return env
 
 
