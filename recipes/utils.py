@@ -61,6 +61,12 @@ ALGORITHMS = {
     "td3": Algorithm("td3", None, 2),
     "sac": Algorithm("sac", None, 2),
 }
+# the keys that size the world model: checked as positive, fixed on resume
+WORLD_MODEL_SIZES = ["world_model.num_models"] + [
+    f"world_model.{part}_{dim}"
+    for part in ("transition", "reward", "termination")
+    for dim in ("cells", "layers")
+]
 LOGGER_BACKENDS = {"": None, "csv": None, "tensorboard": "tensorboard", "wandb": "wandb"}
 
 
@@ -85,13 +91,7 @@ def check_config(cfg: DictConfig) -> Algorithm:
         "collector.total_frames",
         "collector.frames_per_batch",
         "replay_buffer.batch_size",
-        "world_model.num_models",
-        "world_model.transition_cells",
-        "world_model.transition_layers",
-        "world_model.reward_cells",
-        "world_model.reward_layers",
-        "world_model.termination_cells",
-        "world_model.termination_layers",
+        *WORLD_MODEL_SIZES,
         "world_model.train_every",
         "network.actor_cells",
         "network.critic_cells",
@@ -464,13 +464,7 @@ FIXED_ON_RESUME = [
     "algorithm",
     "env.name",
     "network",
-    "world_model.num_models",
-    "world_model.transition_cells",
-    "world_model.transition_layers",
-    "world_model.reward_cells",
-    "world_model.reward_layers",
-    "world_model.termination_cells",
-    "world_model.termination_layers",
+    *WORLD_MODEL_SIZES,
     "estimator.horizon",
 ]
 
