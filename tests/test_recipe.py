@@ -252,6 +252,33 @@ class TestCheckpoints:
         evals = read_scalar(tmp_path, "eval/return", "rave")
         assert evals[-1][0] == 3000
 
+    def test_ctrl_c_checkpoints_at_the_batch_end_and_exits_cleanly(self, tmp_path):
+        overrides = [*TINY, "algorithm=ddpg", "collector.total_frames=100000"]
+        proc = subprocess.Popen(
+            [
+                sys.executable,
+                str(RECIPES / "rave_mujoco.py"),
+                *overrides,
+                f"hydra.run.dir={tmp_path}",
+            ],
+            stdout=subprocess.PIPE,
+            stderr=subprocess.DEVNULL,
+            text=True,
+        )
+        scalars = tmp_path / "ddpg" / "scalars" / "time" / "fps.csv"
+        deadline = time.time() + 240
+        while not scalars.exists() and proc.poll() is None and time.time() < deadline:
+            time.sleep(0.2)
+        proc.send_signal(signal.SIGINT)
+        out, _ = proc.communicate(timeout=240)
+        assert proc.returncode == 0
+        state = torch.load(
+            recipe_utils.Checkpointer(tmp_path).latest() / "state.pt", weights_only=False
+        )
+        frames = state["counters"]["frames"]
+        assert 0 < frames < 100000 and frames % 100 == 0  # a whole number of batches
+        assert f"stopped at frame {frames}; resume with resume={tmp_path}" in out
+
     def test_resume_of_a_finished_run_reproduces_its_evaluation(self, tmp_path):
         # Resuming from the final checkpoint collects nothing and evaluates the restored
         # policy with the same evaluation seed: a policy not restored exactly would give a
