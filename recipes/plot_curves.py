@@ -1,0 +1,127 @@
+"""Learning curves (mean and spread over seeds) for groups of recipe runs, and a table.
+
+python recipes/plot_curves.py \
+    rave='outputs/compare/Hopper-v5/rave/seed*' steve='outputs/compare/Hopper-v5/steve/seed*' \
+    --metric eval/return --at 10000 30000 --out hopper.png
+
+Each positional argument is ``LABEL=PATTERN``: the run directories matching the glob
+``PATTERN`` (quote it) are the seeds of one curve. A run directory is what
+``rave_mujoco.py`` writes (``<run>/<exp_name>/scalars/<metric>.csv``). Curves are drawn on
+the steps every seed of a group has logged; the shaded band is ± one standard deviation
+over seeds. The table gives, at each ``--at`` frame count, the mean ± std over seeds of the
+last value logged at or before it.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import glob
+from pathlib import Path
+
+import numpy as np
+
+
+def read_metric(run_dir: Path, metric: str) -> tuple[np.ndarray, np.ndarray]:
+    """Steps and values of ``metric`` in one run directory."""
+    files = sorted(Path(run_dir).glob(f"*/scalars/{metric}.csv"))
+    if len(files) != 1:
+        raise FileNotFoundError(
+            f"{run_dir}: expected one <exp>/scalars/{metric}.csv, found {len(files)}"
+        )
+    with open(files[0]) as f:
+        rows = [(int(step), float(value)) for step, value in csv.reader(f)]
+    # a resumed run logs the steps after its last checkpoint twice: keep the later value
+    latest = dict(rows)
+    steps = np.array(sorted(latest))
+    return steps, np.array([latest[s] for s in steps])
+
+
+def parse_groups(specs: list[str]) -> dict[str, list[Path]]:
+    groups = {}
+    for spec in specs:
+        if "=" not in spec:
+            raise ValueError(f"{spec!r}: expected LABEL=PATTERN")
+        label, pattern = spec.split("=", 1)
+        runs = sorted(Path(p) for p in glob.glob(pattern))
+        if not runs:
+            raise FileNotFoundError(f"{label}: no run directory matches {pattern!r}")
+        groups[label] = runs
+    return groups
+
+
+def curves(groups: dict[str, list[Path]], metric: str) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    """Per group: the steps all seeds share and the values ``[seeds, steps]``."""
+    out = {}
+    for label, runs in groups.items():
+        data = [read_metric(r, metric) for r in runs]
+        common = sorted(set.intersection(*(set(s.tolist()) for s, _ in data)))
+        values = np.stack([v[np.searchsorted(s, common)] for s, v in data])
+        out[label] = (np.array(common), values)
+    return out
+
+
+def value_at(steps: np.ndarray, values: np.ndarray, frame: int) -> np.ndarray:
+    """Per seed: the last value logged at or before ``frame`` (NaN if none)."""
+    idx = np.searchsorted(steps, frame, side="right") - 1
+    return values[:, idx] if idx >= 0 else np.full(values.shape[0], np.nan)
+
+
+def table(data: dict, at: list[int], metric: str) -> str:
+    head = "| run | seeds | " + " | ".join(f"{metric} at {f:,}" for f in at) + " |"
+    lines = [head, "|" + " --- |" * (2 + len(at))]
+    for label, (steps, values) in data.items():
+        cells = []
+        for frame in at:
+            v = value_at(steps, values, frame)
+            cells.append("n/a" if np.isnan(v).any() else f"{v.mean():.1f} ± {v.std():.1f}")
+        lines.append(f"| {label} | {values.shape[0]} | " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
+def plot(data: dict, metric: str, out: Path, title: str | None = None) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(6, 4))
+    for label, (steps, values) in data.items():
+        mean, std = values.mean(0), values.std(0)
+        (line,) = ax.plot(steps, mean, label=f"{label} ({values.shape[0]} seeds)")
+        ax.fill_between(steps, mean - std, mean + std, color=line.get_color(), alpha=0.2)
+    ax.set_xlabel("environment frames")
+    ax.set_ylabel(metric)
+    if title:
+        ax.set_title(title)
+    ax.legend()
+    ax.grid(alpha=0.3)
+    fig.tight_layout()
+    fig.savefig(out, dpi=120)
+    plt.close(fig)
+
+
+def main(argv: list[str] | None = None) -> str:
+    parser = argparse.ArgumentParser(
+        description="Learning curves and a table for groups of rave_mujoco.py runs.",
+        epilog="Example: plot_curves.py rave='runs/rave/seed*' ddpg='runs/ddpg/seed*' --at 30000",
+    )
+    parser.add_argument("groups", nargs="+", help="LABEL=PATTERN (a quoted glob of run dirs)")
+    parser.add_argument(
+        "--metric", default="eval/return", help="logged metric (default eval/return)"
+    )
+    parser.add_argument("--at", nargs="*", type=int, default=[], help="frame counts for the table")
+    parser.add_argument("--out", type=Path, default=Path("curves.png"), help="PNG to write")
+    parser.add_argument("--title", default=None)
+    args = parser.parse_args(argv)
+    data = curves(parse_groups(args.groups), args.metric)
+    at = args.at or [max(int(s[-1]) for s, _ in data.values())]
+    plot(data, args.metric, args.out, args.title)
+    text = table(data, at, args.metric)
+    print(text)
+    print(f"figure: {args.out}")
+    return text
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,61 @@
+"""plot_curves.py on synthetic run directories."""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "recipes"))
+import plot_curves  # noqa: E402
+
+
+def fake_run(root: Path, exp: str, rows: list[tuple[int, float]]) -> Path:
+    path = root / exp / "scalars" / "eval"
+    path.mkdir(parents=True)
+    (path / "return.csv").write_text("".join(f"{s},{v}\n" for s, v in rows))
+    return root
+
+
+class TestPlotCurves:
+    def test_table_mean_std_and_last_value_before(self, tmp_path):
+        fake_run(tmp_path / "a" / "seed0", "rave", [(100, 1.0), (200, 3.0), (300, 5.0)])
+        fake_run(tmp_path / "a" / "seed1", "rave", [(100, 3.0), (200, 5.0), (300, 9.0)])
+        fake_run(tmp_path / "b" / "seed0", "ddpg", [(100, 0.0), (200, 2.0)])
+        out = tmp_path / "c.png"
+        text = plot_curves.main(
+            [
+                f"rave={tmp_path}/a/seed*",
+                f"ddpg={tmp_path}/b/seed*",
+                "--at",
+                "250",
+                "300",
+                "--out",
+                str(out),
+            ]
+        )
+        # at 250 the last values are 3 and 5 (mean 4, std 1); at 300: 5 and 9
+        assert "| rave | 2 | 4.0 ± 1.0 | 7.0 ± 2.0 |" in text
+        assert "| ddpg | 1 | 2.0 ± 0.0 | 2.0 ± 0.0 |" in text
+        assert out.read_bytes()[:4] == b"\x89PNG"
+
+    def test_curves_use_shared_steps_and_resumed_duplicates(self, tmp_path):
+        fake_run(tmp_path / "s0", "x", [(100, 1.0), (200, 2.0), (300, 3.0)])
+        # a resumed run logged step 200 twice; the later value counts; step 300 missing
+        fake_run(tmp_path / "s1", "x", [(100, 5.0), (200, 6.0), (200, 7.0)])
+        data = plot_curves.curves({"x": [tmp_path / "s0", tmp_path / "s1"]}, "eval/return")
+        steps, values = data["x"]
+        assert steps.tolist() == [100, 200]
+        np.testing.assert_array_equal(values, [[1.0, 2.0], [5.0, 7.0]])
+        assert np.isnan(plot_curves.value_at(steps, values, 50)).all()
+
+    def test_clear_errors(self, tmp_path):
+        with pytest.raises(ValueError, match="LABEL=PATTERN"):
+            plot_curves.parse_groups(["nolabel"])
+        with pytest.raises(FileNotFoundError, match="no run directory matches"):
+            plot_curves.parse_groups([f"x={tmp_path}/missing*"])
+        (tmp_path / "empty").mkdir()
+        with pytest.raises(FileNotFoundError, match="expected one"):
+            plot_curves.read_metric(tmp_path / "empty", "eval/return")
