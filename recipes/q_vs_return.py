@@ -1,0 +1,191 @@
+"""Predicted Q versus the Monte-Carlo return that followed (the paper's figure 4).
+
+python recipes/q_vs_return.py rave=outputs/compare/Hopper-v5/rave/seed0 \
+    steve=outputs/compare/Hopper-v5/steve/seed0 ddpg=outputs/compare/Hopper-v5/ddpg/seed0 \
+    --episodes 10 --out q_vs_return.png
+
+Each ``LABEL=RUN_DIR`` names a ``rave_mujoco.py`` run; its latest checkpoint is loaded
+(config, policy, critics). The deterministic policy plays ``--episodes`` episodes; at each
+visited ``(s_t, a_t)`` the script records the critic's ``Q(s_t, a_t)`` (the mean over an
+ensemble's critics, in environment reward units) and the discounted return that actually
+followed, ``sum_{t' >= t} gamma^(t' - t) r_t'``. Episodes cut by the time limit have no
+return beyond the cut, so their last ``--drop-tail`` states are left out. It prints bias
+(mean of predicted - true), RMSE and correlation per run, and draws 1- and 2-sigma
+confidence ellipses of (true, predicted), both axes normalised by the pooled mean and std of
+the true returns, with the identity line.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+from pathlib import Path
+
+import numpy as np
+import torch
+from omegaconf import OmegaConf
+from tensordict import TensorDict
+
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+import utils  # noqa: E402
+
+
+def load_run(run_dir: Path):
+    """Rebuilds a run's env, deterministic policy and loss (critics) from its checkpoint."""
+    path = utils.Checkpointer(run_dir).latest()
+    if path is None:
+        raise FileNotFoundError(f"{run_dir}: no checkpoint (checkpoints/latest) found")
+    state = torch.load(path / "state.pt", weights_only=False)
+    cfg = OmegaConf.create(state["config"])
+    algo = utils.ALGORITHMS[cfg.algorithm]
+    env = utils.make_env(cfg, torch.device("cpu"))
+    actor, _ = utils.make_actor(cfg, env, algo)
+    critic = utils.make_critic(cfg, env)
+    world_model = utils.make_world_model(cfg, env) if algo.model_based else None
+    loss, _ = utils.make_loss(cfg, env, algo, actor, critic, world_model)
+    loss.load_state_dict(state["loss"])
+    return cfg, env, actor, loss
+
+
+def critic_mean(loss, td: TensorDict) -> torch.Tensor:
+    """``Q(s, a)`` ``[T]`` averaged over the loss's stacked critics."""
+    params = loss.qvalue_network_params
+    values = []
+    for k in range(params.batch_size[0]):
+        with params[k].to_module(loss.qvalue_network):
+            values.append(loss.qvalue_network(td.clone())["state_action_value"].squeeze(-1))
+    return torch.stack(values).mean(0)
+
+
+def discounted_returns(rewards: np.ndarray, gamma: float) -> np.ndarray:
+    out = np.zeros_like(rewards, dtype=np.float64)
+    running = 0.0
+    for t in range(len(rewards) - 1, -1, -1):
+        running = rewards[t] + gamma * running
+        out[t] = running
+    return out
+
+
+@torch.no_grad()
+def collect(
+    run_dir: Path, episodes: int, drop_tail: int, seed: int
+) -> tuple[np.ndarray, np.ndarray]:
+    """(true discounted returns, predicted Q) at the kept states of ``episodes`` episodes."""
+    from torchrl.envs.utils import ExplorationType, set_exploration_type
+
+    cfg, env, actor, loss = load_run(run_dir)
+    env.set_seed(seed)
+    true, pred = [], []
+    with set_exploration_type(ExplorationType.DETERMINISTIC):
+        for _ in range(episodes):
+            rollout = env.rollout(1_000_000, actor, break_when_any_done=True)
+            rewards = rollout["next", "reward"].squeeze(-1).double().numpy()
+            g = discounted_returns(rewards, cfg.optim.gamma)
+            q = critic_mean(loss, rollout).double().numpy() / cfg.env.reward_scale
+            keep = len(g)
+            if not rollout["next", "terminated"][-1].item():
+                keep = max(0, keep - drop_tail)
+            true.append(g[:keep])
+            pred.append(q[:keep])
+    return np.concatenate(true), np.concatenate(pred)
+
+
+def statistics(true: np.ndarray, pred: np.ndarray) -> dict[str, float]:
+    err = pred - true
+    corr = (
+        float(np.corrcoef(true, pred)[0, 1]) if true.std() > 0 and pred.std() > 0 else float("nan")
+    )
+    return {
+        "states": len(true),
+        "bias": float(err.mean()),
+        "rmse": float(np.sqrt((err**2).mean())),
+        "correlation": corr,
+    }
+
+
+def ellipse(x: np.ndarray, y: np.ndarray, n_sigma: float, points: int = 100) -> np.ndarray:
+    """Boundary ``[points, 2]`` of the ``n_sigma`` covariance ellipse of the points (x, y)."""
+    mean = np.array([x.mean(), y.mean()])
+    cov = np.cov(np.stack([x, y]), bias=True)
+    eigval, eigvec = np.linalg.eigh(cov)
+    radii = n_sigma * np.sqrt(np.clip(eigval, 0.0, None))
+    angle = np.linspace(0, 2 * np.pi, points)
+    circle = np.stack([np.cos(angle), np.sin(angle)], axis=1)
+    return mean + (circle * radii) @ eigvec.T
+
+
+def plot(results: dict[str, tuple[np.ndarray, np.ndarray]], out: Path, title: str | None) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    pooled = np.concatenate([t for t, _ in results.values()])
+    mu, sd = pooled.mean(), pooled.std() or 1.0
+    fig, ax = plt.subplots(figsize=(5.5, 5.5))
+    lo, hi = np.inf, -np.inf
+    for label, (true, pred) in results.items():
+        x, y = (true - mu) / sd, (pred - mu) / sd
+        color = None
+        for n_sigma, style in ((1, "-"), (2, "--")):
+            e = ellipse(x, y, n_sigma)
+            (line,) = ax.plot(
+                e[:, 0], e[:, 1], style, color=color, label=label if n_sigma == 1 else None
+            )
+            color = line.get_color()
+            lo, hi = min(lo, e.min()), max(hi, e.max())
+        ax.scatter(x, y, s=2, alpha=0.15, color=color)
+    ax.plot([lo, hi], [lo, hi], color="black", linewidth=1, label="predicted = true")
+    ax.set_xlabel("discounted Monte-Carlo return (normalised)")
+    ax.set_ylabel("predicted Q (normalised)")
+    ax.set_title(title or "Q vs return: 1 sigma (solid), 2 sigma (dashed)")
+    ax.legend()
+    ax.set_aspect("equal")
+    fig.tight_layout()
+    fig.savefig(out, dpi=120)
+    plt.close(fig)
+
+
+def main(argv: list[str] | None = None) -> str:
+    parser = argparse.ArgumentParser(
+        description="Predicted Q vs Monte-Carlo return for trained runs (confidence ellipses)."
+    )
+    parser.add_argument("runs", nargs="+", help="LABEL=RUN_DIR of a rave_mujoco.py run")
+    parser.add_argument("--episodes", type=int, default=10)
+    parser.add_argument(
+        "--drop-tail", type=int, default=300, help="states cut from truncated episodes"
+    )
+    parser.add_argument("--seed", type=int, default=12345, help="evaluation env seed")
+    parser.add_argument("--out", type=Path, default=Path("q_vs_return.png"))
+    parser.add_argument("--title", default=None)
+    args = parser.parse_args(argv)
+    if args.episodes < 1:
+        parser.error("--episodes must be >= 1")
+    results = {}
+    for spec in args.runs:
+        if "=" not in spec:
+            parser.error(f"{spec!r}: expected LABEL=RUN_DIR")
+        label, run = spec.split("=", 1)
+        true, pred = collect(Path(run), args.episodes, args.drop_tail, args.seed)
+        if len(true) < 2:
+            raise ValueError(f"{label}: fewer than 2 states left; lower --drop-tail")
+        results[label] = (true, pred)
+    lines = [
+        "| run | states | bias (pred - true) | RMSE | correlation |",
+        "| --- | --- | --- | --- | --- |",
+    ]
+    for label, (true, pred) in results.items():
+        s = statistics(true, pred)
+        lines.append(
+            f"| {label} | {s['states']} | {s['bias']:.2f} | {s['rmse']:.2f} | {s['correlation']:.3f} |"
+        )
+    plot(results, args.out, args.title)
+    text = "\n".join(lines)
+    print(text)
+    print(f"figure: {args.out}")
+    return text
+
+
+if __name__ == "__main__":
+    main()
