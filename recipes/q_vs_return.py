@@ -24,7 +24,6 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from omegaconf import OmegaConf
 from tensordict import TensorDict
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
@@ -37,7 +36,7 @@ def load_run(run_dir: Path):
     if path is None:
         raise FileNotFoundError(f"{run_dir}: no checkpoint (checkpoints/latest) found")
     state = torch.load(path / "state.pt", weights_only=False)
-    cfg = OmegaConf.create(state["config"])
+    cfg = utils.saved_config(run_dir)
     algo = utils.ALGORITHMS[cfg.algorithm]
     env = utils.make_env(cfg, torch.device("cpu"))
     actor, _ = utils.make_actor(cfg, env, algo)

@@ -456,7 +456,11 @@ def saved_config(run_dir: str) -> DictConfig:
         raise FileNotFoundError(
             f"resume={run_dir!r}: no checkpoint found under {run_dir}/checkpoints"
         )
-    return OmegaConf.create(torch.load(path / "state.pt", weights_only=False)["config"])
+    saved = OmegaConf.create(torch.load(path / "state.pt", weights_only=False)["config"])
+    # keys added to config.yaml after the run started take their defaults
+    base = OmegaConf.load(Path(__file__).with_name("config.yaml"))
+    base.pop("defaults")
+    return OmegaConf.merge(base, saved)
 
 
 # Keys that shape the saved modules, buffers or algorithm: a resumed run cannot change them.
