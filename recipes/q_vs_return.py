@@ -24,7 +24,6 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from tensordict import TensorDict
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 import utils  # noqa: E402
@@ -45,16 +44,6 @@ def load_run(run_dir: Path):
     loss, _ = utils.make_loss(cfg, env, algo, actor, critic, world_model)
     loss.load_state_dict(state["loss"])
     return cfg, env, actor, loss
-
-
-def critic_mean(loss, td: TensorDict) -> torch.Tensor:
-    """``Q(s, a)`` ``[T]`` averaged over the loss's stacked critics."""
-    params = loss.qvalue_network_params
-    values = []
-    for k in range(params.batch_size[0]):
-        with params[k].to_module(loss.qvalue_network):
-            values.append(loss.qvalue_network(td.clone())["state_action_value"].squeeze(-1))
-    return torch.stack(values).mean(0)
 
 
 def discounted_returns(rewards: np.ndarray, gamma: float) -> np.ndarray:
@@ -81,7 +70,7 @@ def collect(
             rollout = env.rollout(1_000_000, actor, break_when_any_done=True)
             rewards = rollout["next", "reward"].squeeze(-1).double().numpy()
             g = discounted_returns(rewards, cfg.optim.gamma)
-            q = critic_mean(loss, rollout).double().numpy() / cfg.env.reward_scale
+            q = utils.critic_mean(loss, rollout).double().numpy() / cfg.env.reward_scale
             keep = len(g)
             if not rollout["next", "terminated"][-1].item():
                 keep = max(0, keep - drop_tail)

@@ -43,27 +43,16 @@ class QProbe:
         self.reward_scale = reward_scale
 
     def __call__(self, frames: int, loss) -> dict[str, float]:
+        from utils import critic_mean
+
         out = {}
         with torch.no_grad():
             for name, a in ACTIONS.items():
                 td = TensorDict(
                     {"observation": torch.zeros(1, 1), "action": torch.full((1, 1), a)}, [1]
                 )
-                # the loss's critics are stacked on a leading dimension [K, ...]
-                params = loss.qvalue_network_params
-                q = torch.stack(
-                    [
-                        _critic_value(loss, params[i], td)
-                        for i in range(params.batch_size[0] if params.batch_size else 1)
-                    ]
-                )
-                out[f"toy/q_{name}"] = q.mean().item() / self.reward_scale
+                out[f"toy/q_{name}"] = critic_mean(loss, td).item() / self.reward_scale
         return out
-
-
-def _critic_value(loss, params, td) -> torch.Tensor:
-    with params.to_module(loss.qvalue_network):
-        return loss.qvalue_network(td.clone())["state_action_value"]
 
 
 def run_one(job: tuple[str, float, int, list[str], str]) -> str:

@@ -375,6 +375,16 @@ def evaluate(env, actor, episodes: int) -> dict[str, float]:
     }
 
 
+def critic_mean(loss, td: TensorDictBase) -> torch.Tensor:
+    """``Q(s, a)`` ``[*B]`` averaged over the loss's stacked critics (``[K, ...]`` params)."""
+    params = loss.qvalue_network_params
+    values = []
+    for k in range(params.batch_size[0]):
+        with params[k].to_module(loss.qvalue_network):
+            values.append(loss.qvalue_network(td.clone())["state_action_value"].squeeze(-1))
+    return torch.stack(values).mean(0)
+
+
 class NonFiniteEnvOutput(RuntimeError):
     """The environment produced NaN or infinite observations or rewards."""
 
