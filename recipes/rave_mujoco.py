@@ -94,8 +94,9 @@ def train(cfg: DictConfig, run_dir: str, probe: Probe | None = None) -> dict[str
     cfg = cfg.copy()
     if cfg.resume:
         run_dir = cfg.resume
-        check_resumable(cfg, saved_config(run_dir))
-        cfg.replay_buffer.size = saved_config(run_dir).replay_buffer.size
+        saved_cfg = saved_config(run_dir)
+        check_resumable(cfg, saved_cfg)
+        cfg.replay_buffer.size = saved_cfg.replay_buffer.size
     else:
         cfg.replay_buffer.size = replay_buffer_size(cfg)  # fixed once, so resuming keeps it
     device = torch.device(cfg.collector.device or ("cuda" if torch.cuda.is_available() else "cpu"))
