@@ -22,6 +22,7 @@ from torchrl_rave import (
     WorldModelEnsemble,
     make_value_expansion_estimator,
 )
+from torchrl_rave.modules import TensorCall
 
 S, A = 3, 2
 
@@ -448,18 +449,57 @@ class TestNoGradientThroughTarget:
             torch.testing.assert_close(p.grad, params.get(name).grad)
 
 
+class TestFastCalls:
+    """The planned tensor calls give the TensorDict path's target exactly."""
+
+    @pytest.mark.parametrize("make_loss", [ddpg_loss, td3_loss])
+    def test_same_target_and_diagnostics(self, make_loss):
+        loss = make_loss()
+        perturb(loss.target_actor_network_params)
+        critic_name = "value" if hasattr(loss, "target_value_network_params") else "qvalue"
+        perturb(getattr(loss, f"target_{critic_name}_network_params"))
+        out = {}
+        for fast in (False, True):
+            est = RAVEValueEstimator.for_loss(
+                loss, world_model=world_model(3), gamma=0.9, horizon=3, fast_calls=fast
+            )
+            torch.manual_seed(7)  # the same sampled rollouts
+            data = batch(B=16, terminal=(1,))
+            out[fast] = (est.value_estimate(data), data)
+        torch.testing.assert_close(out[True][0], out[False][0])
+        for key in ("rave_horizon_variance", "rave_horizon_weights", "rave_alpha"):
+            torch.testing.assert_close(out[True][1][key], out[False][1][key])
+
+
 class TestCallCounts:
     """O(N H) transition, O(N^2 H) reward, O(N K H) critic rows: never N^3 network work."""
 
+    @pytest.mark.parametrize("fast_calls", [False, True])
     @pytest.mark.parametrize("N,K,H", [(1, 1, 0), (3, 1, 2), (4, 4, 3), (5, 2, 1)])
-    def test_rows_per_network(self, N, K, H):
+    def test_rows_per_network(self, N, K, H, fast_calls, monkeypatch):
         wm = world_model(N)
         loss = td3_loss(K)
         est = RAVEValueEstimator.for_loss(
-            loss, world_model=wm, gamma=0.9, horizon=H, adaptive_alpha=False
+            loss, world_model=wm, gamma=0.9, horizon=H, adaptive_alpha=False, fast_calls=fast_calls
         )
         M = 7
         counts = {}
+        if fast_calls:
+            # The actor and critics are evaluated as planned tensor calls, not as modules:
+            # count the planned calls (rows in, and members for stacked critic parameters).
+            call_impl = TensorCall.__call__
+            names = {}
+
+            def counted(plan, params, inputs):
+                out = call_impl(plan, params, inputs)
+                name = "critic" if "state_action_value" in plan.out_keys else "actor"
+                names[name] = params.batch_size.numel() if params is not None else 1
+                rows = next(iter(inputs.values())).shape[:-1].numel()
+                calls, total = counts.get(name, (0, 0))
+                counts[name] = (calls + 1, total + rows)
+                return out
+
+            monkeypatch.setattr(TensorCall, "__call__", counted)
 
         def counter(name):
             def hook(module, args, out):
@@ -484,8 +524,11 @@ class TestCallCounts:
         assert counts["reward"] == (1, N * N * M * H)
         assert counts["termination"] == (1, N * M * H)
         assert counts["actor"] == (H + 1, M * (1 + N * H))
-        # one vmapped call over the K stacked critics (the hook sees one member's rows)
+        # one vmapped call over the K stacked critics (the hook sees one member's rows), or
+        # one planned call with all K members' parameters stacked
         assert counts["critic"] == (1, M * (1 + N * H))
+        if fast_calls:
+            assert names["critic"] == K
 
 
 class TestBadInput:

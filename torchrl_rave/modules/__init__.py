@@ -3,6 +3,7 @@
 from torchrl_rave.modules.ensemble import EnsembleLinear, EnsembleMLP, GaussianEnsembleMLP
 from torchrl_rave.modules.exploration import EpsilonGaussianModule
 from torchrl_rave.modules.normalizer import RunningNormalizer
+from torchrl_rave.modules.tensor_call import TensorCall
 from torchrl_rave.modules.world_model import WorldModelEnsemble
 
 __all__ = [
@@ -11,5 +12,6 @@ __all__ = [
     "EpsilonGaussianModule",
     "GaussianEnsembleMLP",
     "RunningNormalizer",
+    "TensorCall",
     "WorldModelEnsemble",
 ]

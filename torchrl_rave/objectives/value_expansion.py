@@ -13,6 +13,7 @@ from tensordict.utils import NestedKey
 from torchrl.objectives.value import ValueEstimatorBase
 
 from torchrl_rave._checks import check_non_negative, check_positive_int, get_checked
+from torchrl_rave.modules.tensor_call import TensorCall
 from torchrl_rave.modules.world_model import WorldModelEnsemble
 from torchrl_rave.objectives import functional as VF
 
@@ -94,6 +95,11 @@ class ValueExpansionEstimator(ValueEstimatorBase):
         variance_eps (float): ``eps`` in ``w_H = 1 / (V_H + eps)``.
         check_inputs (bool): validate shapes and reject NaN/inf in the batch (one
             device sync per call). Defaults to ``True``.
+        fast_calls (bool): evaluate the actor and critics through
+            :class:`~torchrl_rave.modules.TensorCall` (direct matmuls on the target
+            parameters, one batched matmul per layer for ``K`` critics) when their structure
+            allows it; ``False`` always goes through the TensorDict modules (and ``vmap``).
+            Both give the same numbers. Defaults to ``True``.
         device (torch.device, optional): where the buffers live.
 
     Examples:
@@ -171,6 +177,7 @@ class ValueExpansionEstimator(ValueEstimatorBase):
         value_params: TensorDictBase | None = None,
         variance_eps: float = 1e-8,
         check_inputs: bool = True,
+        fast_calls: bool = True,
         device: torch.device | None = None,
     ) -> None:
         super().__init__(value_network=value_network, differentiable=False, device=device)
@@ -209,6 +216,8 @@ class ValueExpansionEstimator(ValueEstimatorBase):
         self.__dict__["_loss_param_names"] = None
         self._warned_single_critic = False
         self.__dict__["diagnostics"] = None
+        self.fast_calls = fast_calls
+        self.__dict__["_tensor_calls"] = {}
 
     # ----------------------------------------------------------------- wiring
     @classmethod
@@ -289,15 +298,35 @@ class ValueExpansionEstimator(ValueEstimatorBase):
         return [k.value_target, k.alpha, k.horizon_variance, k.horizon_weights]
 
     # ------------------------------------------------------------ network calls
-    def _policy(self, obs: torch.Tensor) -> torch.Tensor:
+    def _tensor_call(self, which: str, module, stacked: bool) -> TensorCall | None:
+        """The planned tensor-level call of ``module`` (cached; ``None``: no fast path)."""
+        key = (which, stacked)
+        if key not in self._tensor_calls:
+            self._tensor_calls[key] = (
+                TensorCall.plan(module, stacked=stacked) if self.fast_calls else None
+            )
+        return self._tensor_calls[key]
+
+    def _policy(self, obs: torch.Tensor, params) -> torch.Tensor:
         k = self.tensor_keys
+        call = self._tensor_call("actor", self.actor_network, False)
+        if call is not None:
+            return call(params, {k.observation: obs})[k.action]
         td = TensorDict({k.observation: obs}, batch_size=obs.shape[:-1])
-        return self.actor_network(td).get(k.action)
+        if params is None:
+            return self.actor_network(td).get(k.action)
+        with params.to_module(self.actor_network, preserve_module_state=False):
+            return self.actor_network(td).get(k.action)
 
     def _critic(self, obs: torch.Tensor, action: torch.Tensor, params) -> torch.Tensor:
         """Critic values ``[K, *B]`` (``K = 1`` without stacked parameters)."""
         k = self.tensor_keys
         net = self.value_network
+        stacked = params is not None and params.batch_dims >= 1
+        call = self._tensor_call("critic", net, stacked)
+        if call is not None:
+            q = call(params, {k.observation: obs, k.action: action})[k.value].squeeze(-1)
+            return q if stacked else q.unsqueeze(0)
 
         def call(o, a, p):
             td = TensorDict({k.observation: o, k.action: a}, batch_size=o.shape[:-1])
@@ -306,7 +335,7 @@ class ValueExpansionEstimator(ValueEstimatorBase):
             with p.to_module(net, preserve_module_state=False):
                 return net(td).get(k.value)
 
-        if params is not None and params.batch_dims >= 1:
+        if stacked:
             return torch.vmap(call, (None, None, 0))(obs, action, params).squeeze(-1)
         return call(obs, action, params).squeeze(-1).unsqueeze(0)
 
@@ -381,11 +410,10 @@ class ValueExpansionEstimator(ValueEstimatorBase):
         def step(s, a, per_member):
             return wm.step(s, a, sample=sample, per_member=per_member)
 
-        if actor_params is not None:
-            with actor_params.to_module(self.actor_network, preserve_module_state=False):
-                states, actions = VF.imagined_rollout(next_obs, self._policy, step, N, H)
-        else:
-            states, actions = VF.imagined_rollout(next_obs, self._policy, step, N, H)
+        def policy(s):
+            return self._policy(s, actor_params)
+
+        states, actions = VF.imagined_rollout(next_obs, policy, step, N, H)
         # states/actions: [N, M, H+1, F]
 
         # Reward members score every transition member's steps: [Nj, Ni, M, H].

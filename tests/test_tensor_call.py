@@ -1,0 +1,151 @@
+"""TensorCall: the planned tensor-level call gives the TensorDict module's numbers exactly."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+from tensordict import TensorDict
+from tensordict.nn import TensorDictModule, TensorDictSequential
+from torch import nn
+from torchrl.data import Bounded
+from torchrl.modules import MLP, Actor, TanhModule, ValueOperator
+
+from torchrl_rave.modules import TensorCall
+
+S, A, M = 5, 2, 9
+
+
+def critic(**kw):
+    return ValueOperator(
+        MLP(in_features=S + A, out_features=1, num_cells=[16, 16], **kw),
+        in_keys=["observation", "action"],
+    )
+
+
+def tanh_actor(low=-2.0, high=3.0):
+    return TensorDictSequential(
+        TensorDictModule(
+            MLP(in_features=S, out_features=A, num_cells=[16]),
+            in_keys=["observation"],
+            out_keys=["param"],
+        ),
+        TanhModule(in_keys=["param"], out_keys=["action"], spec=Bounded(low, high, shape=(A,))),
+    )
+
+
+def random_params(module, K=None):
+    """Parameters unlike the module's own, so using the wrong ones would show."""
+    params = TensorDict.from_module(module).data
+    if K is not None:
+        params = params.expand(K).clone()
+    return params.apply(lambda t: torch.randn_like(t) if t.is_floating_point() else t)
+
+
+def inputs():
+    g = torch.Generator().manual_seed(0)
+    return {"observation": torch.randn(M, S, generator=g), "action": torch.randn(M, A, generator=g)}
+
+
+def reference(module, params, x):
+    td = TensorDict(dict(x), [M])
+    with params.to_module(module):
+        return module(td)
+
+
+class TestEquivalence:
+    def test_critic_own_parameters(self):
+        net = critic()
+        call = TensorCall.plan(net)
+        out = call(None, inputs())["state_action_value"]
+        torch.testing.assert_close(out, net(TensorDict(inputs(), [M]))["state_action_value"])
+
+    def test_critic_given_parameters(self):
+        net = critic()
+        params = random_params(net)
+        out = TensorCall.plan(net)(params, inputs())["state_action_value"]
+        torch.testing.assert_close(out, reference(net, params, inputs())["state_action_value"])
+
+    @pytest.mark.parametrize("K", [1, 3])
+    def test_stacked_critics_match_a_loop_over_members(self, K):
+        net = critic()
+        params = random_params(net, K)
+        out = TensorCall.plan(net, stacked=True)(params, inputs())["state_action_value"]
+        assert out.shape == (K, M, 1)
+        for k in range(K):
+            expected = reference(net, params[k], inputs())["state_action_value"]
+            torch.testing.assert_close(out[k], expected)
+
+    def test_stacked_per_member_inputs(self):
+        net = critic()
+        params = random_params(net, 3)
+        x = {
+            k: v.expand(3, *v.shape) + torch.arange(3.0).view(3, 1, 1) for k, v in inputs().items()
+        }
+        out = TensorCall.plan(net, stacked=True)(params, x)["state_action_value"]
+        for k in range(3):
+            member = {key: v[k] for key, v in x.items()}
+            expected = reference(net, params[k], member)["state_action_value"]
+            torch.testing.assert_close(out[k], expected)
+
+    def test_tanh_actor_lands_in_the_box(self):
+        actor = tanh_actor()
+        params = random_params(actor)
+        out = TensorCall.plan(actor)(params, inputs())["action"]
+        torch.testing.assert_close(out, reference(actor, params, inputs())["action"])
+        assert bool((out >= -2).all() and (out <= 3).all())
+
+    def test_nested_sequential_actor(self):
+        actor = Actor(nn.Sequential(MLP(in_features=S, out_features=A, num_cells=[8]), nn.Tanh()))
+        params = random_params(actor)
+        call = TensorCall.plan(actor)
+        assert call.steps[0][0] == "mlp"
+        torch.testing.assert_close(
+            call(params, inputs())["action"], reference(actor, params, inputs())["action"]
+        )
+
+    def test_gradients_reach_the_given_parameters(self):
+        net = critic()
+        params = TensorDict.from_module(net)
+        out = TensorCall.plan(net)(params, inputs())["state_action_value"].sum()
+        out.backward()
+        assert all(p.grad is not None and p.grad.abs().sum() > 0 for p in net.parameters())
+
+
+class TestRefusals:
+    def test_layer_norm_runs_through_the_module(self):
+        net = critic(norm_class=nn.LayerNorm, norm_kwargs={"normalized_shape": 16})
+        params = random_params(net)
+        call = TensorCall.plan(net)
+        assert [step[0] for step in call.steps] == ["module"]
+        torch.testing.assert_close(
+            call(params, inputs())["state_action_value"],
+            reference(net, params, inputs())["state_action_value"],
+        )
+        # its parameters are not a Linear stack: no stacked plan
+        assert TensorCall.plan(net, stacked=True) is None
+
+    def test_custom_module_runs_through_its_forward(self):
+        class Shift(nn.Module):
+            def __init__(self):
+                super().__init__()
+                self.shift = nn.Parameter(torch.ones(A))
+
+            def forward(self, x):
+                return x + self.shift
+
+        actor = TensorDictSequential(
+            TensorDictModule(
+                MLP(in_features=S, out_features=A, num_cells=[8]),
+                in_keys=["observation"],
+                out_keys=["h"],
+            ),
+            TensorDictModule(Shift(), in_keys=["h"], out_keys=["action"]),
+        )
+        params = random_params(actor)
+        call = TensorCall.plan(actor)
+        assert [step[0] for step in call.steps] == ["mlp", "module"]
+        torch.testing.assert_close(
+            call(params, inputs())["action"], reference(actor, params, inputs())["action"]
+        )
+        # a member-specific custom module cannot be stacked exactly
+        assert TensorCall.plan(actor, stacked=True) is None

@@ -1,0 +1,203 @@
+"""Calling TensorDict modules on plain tensors with given, optionally stacked, parameters.
+
+The value-expansion target evaluates the target actor ``1 + H_max`` times and ``K`` target
+critics on ``M (1 + N H_max)`` rows per update. Through the TensorDict API each call wraps
+its inputs in a TensorDict, swaps the target parameters in with ``to_module`` and, for
+``K`` stacked critics, goes through ``torch.vmap``: on small networks that overhead costs
+more than the arithmetic. :class:`TensorCall` plans the call once and then runs
+
+- every :class:`~tensordict.nn.TensorDictModule` whose module is a plain ``nn.Sequential``
+  (TorchRL's :class:`~torchrl.modules.MLP` included) of ``nn.Linear`` layers and
+  parameter-free element-wise activations as direct ``linear`` / ``baddbmm`` calls on the
+  given parameters (stacked parameters: one batched matmul per layer for all ``K``
+  members), and
+- any other module (a :class:`~torchrl.modules.TanhModule`, a custom module) through its
+  own ``forward`` on a small TensorDict, with its parameters swapped in.
+
+Anything the plan cannot prove equivalent (normalisation or dropout layers, modules with
+a custom ``forward``, stacked parameters through a non-MLP module) is refused at planning
+time: :meth:`TensorCall.plan` returns ``None`` and the caller keeps the TensorDict path.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+
+import torch
+from tensordict import TensorDict, TensorDictBase
+from tensordict.nn import TensorDictModule, TensorDictModuleBase, TensorDictSequential
+from tensordict.utils import NestedKey
+from torch import nn
+from torch.nn import functional as F
+from torchrl.modules import MLP, TanhModule
+
+__all__ = ["TensorCall"]
+
+# Parameter-free activations that act element-wise (safe to apply to [K, M, F] at once).
+_ELEMENTWISE = (
+    nn.ReLU,
+    nn.Tanh,
+    nn.ELU,
+    nn.LeakyReLU,
+    nn.SiLU,
+    nn.GELU,
+    nn.Sigmoid,
+    nn.Softplus,
+    nn.Mish,
+    nn.Identity,
+)
+
+
+def _linear_layers(module: nn.Module, prefix: tuple[str, ...] = ()) -> list | None:
+    """``(parameter key, is_linear, layer)`` for every layer of a plain Linear/activation
+    ``nn.Sequential`` (nested plain Sequentials flattened), or ``None``."""
+    if not isinstance(module, nn.Sequential):
+        return None
+    if type(module).forward not in (nn.Sequential.forward, MLP.forward):
+        return None
+    if getattr(module, "_reshape_out", False):
+        return None
+    layers = []
+    for name, layer in module.named_children():
+        key = (*prefix, name)
+        if type(layer) is nn.Linear:
+            layers.append((key, True, layer))
+        elif isinstance(layer, _ELEMENTWISE) and not any(True for _ in layer.parameters()):
+            layers.append((key, False, layer))
+        else:
+            inner = _linear_layers(layer, key)
+            if inner is None:
+                return None
+            layers += inner
+    return layers
+
+
+def _stacked_linear(x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor | None):
+    """``x @ W^T + b`` for ``K`` stacked layers: ``x`` is ``[M, F]`` (shared) or ``[K, M, F]``."""
+    wt = weight.transpose(-1, -2)
+    if x.dim() == 2:
+        out = torch.matmul(x, wt)  # [M, F] @ [K, F, F'] broadcasts to [K, M, F']
+        return out if bias is None else out + bias.unsqueeze(-2)
+    if bias is None:
+        return torch.bmm(x, wt)
+    return torch.baddbmm(bias.unsqueeze(-2), x, wt)
+
+
+class TensorCall:
+    """A planned, TensorDict-free call of a TensorDict module.
+
+    Build it with :meth:`plan`; call it with the parameters (laid out as
+    ``TensorDict.from_module(module)``, optionally with a leading ensemble dimension) and a
+    mapping of input tensors. It returns the module's outputs by key.
+
+    Examples:
+        >>> from torchrl.modules import MLP, ValueOperator
+        >>> critic = ValueOperator(MLP(in_features=5, out_features=1, num_cells=[8]),
+        ...                        in_keys=["observation", "action"])
+        >>> call = TensorCall.plan(critic, stacked=True)
+        >>> params = TensorDict.from_module(critic).data.expand(4).clone()  # K = 4 members
+        >>> out = call(params, {"observation": torch.randn(6, 3), "action": torch.randn(6, 2)})
+        >>> out["state_action_value"].shape
+        torch.Size([4, 6, 1])
+    """
+
+    def __init__(self, steps: list[tuple], out_keys: list[NestedKey]) -> None:
+        self.steps = steps
+        self.out_keys = out_keys
+
+    @classmethod
+    def plan(cls, module: TensorDictModuleBase, *, stacked: bool = False) -> TensorCall | None:
+        """Plans ``module``; ``None`` when some part cannot be run exactly on tensors.
+
+        Args:
+            module (TensorDictModuleBase): a TensorDictModule or TensorDictSequential.
+            stacked (bool): the parameters will carry a leading ensemble dimension; only
+                Linear/activation MLPs (and parameter-free modules) are accepted then.
+        """
+        steps = cls._plan(module, (), stacked)
+        if steps is None:
+            return None
+        return cls(steps, list(module.out_keys))
+
+    @classmethod
+    def _plan(cls, module, prefix: tuple[str, ...], stacked: bool) -> list[tuple] | None:
+        if type(module) is TensorDictSequential and not getattr(module, "partial_tolerant", False):
+            steps = []
+            for i, sub in enumerate(module.module):
+                sub_steps = cls._plan(sub, (*prefix, "module", str(i)), stacked)
+                if sub_steps is None:
+                    return None
+                steps += sub_steps
+            return steps
+        if (
+            isinstance(module, TensorDictModule)
+            and type(module).forward is TensorDictModule.forward
+            and len(module.out_keys) == 1
+            and not getattr(module, "out_to_in_map", False)
+        ):
+            layers = _linear_layers(module.module, (*prefix, "module"))
+            # several inputs are concatenated by TorchRL's MLP only
+            several = len(module.in_keys) > 1
+            if layers is not None and (not several or type(module.module) is MLP):
+                return [("mlp", list(module.in_keys), module.out_keys[0], layers)]
+        if type(module) is TanhModule and len(module.in_keys) == 1:
+            # TorchRL's squashing onto the action box, done on the tensor (bounds are buffers)
+            key = module.out_keys[0]
+            name = key if isinstance(key, str) else "_".join(key)
+            bounds = (module, prefix, f"{name}_low", f"{name}_high")
+            return [
+                ("tanh", module.in_keys[0], key, bounds, bool(module.non_trivial), module.clamp)
+            ]
+        has_state = any(True for _ in module.parameters()) or any(True for _ in module.buffers())
+        if stacked and any(True for _ in module.parameters()):
+            return None
+        return [("module", prefix if has_state else None, module)]
+
+    def __call__(
+        self, params: TensorDictBase | None, inputs: Mapping[NestedKey, torch.Tensor]
+    ) -> dict[NestedKey, torch.Tensor]:
+        values = dict(inputs)
+        for step in self.steps:
+            if step[0] == "mlp":
+                _, in_keys, out_key, layers = step
+                xs = [values[k] for k in in_keys]
+                x = xs[0] if len(xs) == 1 else torch.cat(xs, -1)
+                for key, is_linear, layer in layers:
+                    if not is_linear:
+                        x = layer(x)
+                        continue
+                    p = params.get(key) if params is not None else None
+                    w = layer.weight if p is None else p.get("weight")
+                    b = layer.bias if p is None else p.get("bias", None)
+                    x = F.linear(x, w, b) if w.dim() == 2 else _stacked_linear(x, w, b)
+                values[out_key] = x
+            elif step[0] == "tanh":
+                _, in_key, out_key, (module, prefix, low_name, high_name), rescale, clamp = step
+                if params is None:
+                    low, high = getattr(module, low_name), getattr(module, high_name)
+                else:
+                    sub = params.get(prefix) if prefix else params
+                    if sub.batch_dims:  # bounds shared by all members
+                        sub = sub[(0,) * sub.batch_dims]
+                    low, high = sub.get(low_name), sub.get(high_name)
+                x = values[in_key].tanh()
+                if clamp:
+                    eps = torch.finfo(x.dtype).resolution
+                    x = x.clamp(-1 + eps, 1 - eps)
+                values[out_key] = low + (high - low) * (x + 1) / 2 if rescale else x
+            else:
+                _, prefix, module = step
+                batch = next(iter(values.values())).shape[:-1]
+                td = TensorDict({k: values[k] for k in module.in_keys if k in values}, batch)
+                if prefix is not None and params is not None:
+                    sub = params.get(prefix) if prefix else params
+                    # buffers shared by all members (e.g. TanhModule's bounds) are read as one
+                    if sub.batch_dims:
+                        sub = sub[(0,) * sub.batch_dims]
+                    with sub.to_module(module, preserve_module_state=False):
+                        td = module(td)
+                else:
+                    td = module(td)
+                for k in module.out_keys:
+                    values[k] = td.get(k)
+        return {k: values[k] for k in self.out_keys}
