@@ -29,6 +29,7 @@ sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 from utils import (  # noqa: E402
     Checkpointer,
     NonFiniteEnvOutput,
+    agent_update,
     check_config,
     check_finite,
     check_resumable,
@@ -48,6 +49,7 @@ from utils import (  # noqa: E402
     rng_state,
     saved_config,
     set_rng_state,
+    world_model_update,
 )
 
 Probe = Callable[[int, object], dict]
@@ -151,29 +153,11 @@ def train(cfg: DictConfig, run_dir: str, probe: Probe | None = None) -> dict[str
             for key, value in metrics.items():
                 logger.log_scalar(key, value, step=counters["frames"])
 
-    def world_model_step() -> dict:
-        out = wm_loss(rb.sample())
-        opt = optimizers["world_model"]
-        opt.zero_grad()
-        (out["loss_transition"] + out["loss_reward"] + out["loss_termination"]).backward()
-        opt.step()
-        return out
+    def world_model_step():
+        return world_model_update(wm_loss, optimizers["world_model"], rb.sample())
 
-    def agent_step(step_actor: bool) -> dict:
-        out = loss(rb.sample())
-        for opt in ("actor", "critic", "alpha"):
-            if opt in optimizers:
-                optimizers[opt].zero_grad()
-        # Each loss sees the other networks detached (and targets carry no gradient), so one
-        # backward over the sum gives every network exactly its own gradient.
-        sum(v for k, v in out.items() if k.startswith("loss_")).backward()
-        optimizers["critic"].step()
-        if step_actor:
-            optimizers["actor"].step()
-            if "alpha" in optimizers:
-                optimizers["alpha"].step()
-            updater.step()
-        return out
+    def agent_step(step_actor: bool):
+        return agent_update(loss, optimizers, updater, rb.sample(), step_actor)
 
     policy_delay = cfg.td3.policy_delay if algo.loss == "td3" else 1
     start_frames = max(cfg.collector.init_random_frames, cfg.replay_buffer.batch_size)

@@ -9,7 +9,12 @@ from test_value_expansion import A, actor_net, batch, critic_net, perturb, world
 from torchrl.data import Bounded
 from torchrl.objectives import SoftUpdate, ValueEstimators
 
-from torchrl_rave import EnsembleDDPGLoss, RAVEValueEstimator, STEVEEstimator
+from torchrl_rave import (
+    EnsembleDDPGLoss,
+    ForeachSoftUpdate,
+    RAVEValueEstimator,
+    STEVEEstimator,
+)
 
 GAMMA = 0.9
 
@@ -113,3 +118,20 @@ def test_fast_path_is_used_and_skips_the_unused_td3_target():
     # value expansion computes its own target: no TD(0) next-state value is formed
     assert "next_state_value" not in out.keys()  # noqa: SIM118 (a TensorDict)
     assert "next_state_value" in make_loss(2)(batch(B=4)).keys()  # noqa: SIM118
+
+
+@pytest.mark.parametrize("K", [1, 3])
+def test_foreach_soft_update_matches_torchrl(K):
+    ours, theirs = make_loss(K), make_loss(K)
+    before = ours.target_qvalue_network_params.clone()
+    updaters = [ForeachSoftUpdate(ours, tau=0.1), SoftUpdate(theirs, tau=0.1)]
+    for step in range(3):
+        for loss in (ours, theirs):
+            torch.manual_seed(step)  # the same change of the online networks in both
+            perturb(loss.actor_network_params)
+            perturb(loss.qvalue_network_params)
+        for updater in updaters:
+            updater.step()
+    assert not (ours.target_qvalue_network_params == before).all()
+    for name in ("target_actor_network_params", "target_qvalue_network_params"):
+        torch.testing.assert_close(getattr(ours, name), getattr(theirs, name), rtol=0, atol=1e-7)

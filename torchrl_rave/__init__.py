@@ -10,6 +10,8 @@ The public pieces:
   :class:`~torchrl_rave.objectives.MVEEstimator`: TorchRL value estimators for any
   DDPG/TD3-style loss.
 - :class:`~torchrl_rave.transforms.AdaptiveAlpha`: the per-sample confidence factor of eq. 12.
+- :class:`~torchrl_rave.objectives.EnsembleDDPGLoss` (DDPG on K critics, STEVE/RAVE's base
+  learner) and :class:`~torchrl_rave.objectives.ForeachSoftUpdate` (one fused Polyak update).
 """
 
 from torchrl_rave._compat import patch_value_estimator_setter
@@ -17,9 +19,14 @@ from torchrl_rave._compat import patch_value_estimator_setter
 patch_value_estimator_setter()
 
 from torchrl_rave.envs import ToyEnv, ground_truth_q  # noqa: E402  (registers RAVEToy-v0)
-from torchrl_rave.modules import EpsilonGaussianModule, WorldModelEnsemble  # noqa: E402
+from torchrl_rave.modules import (  # noqa: E402
+    EpsilonGaussianModule,
+    TensorCall,
+    WorldModelEnsemble,
+)
 from torchrl_rave.objectives import (  # noqa: E402
     EnsembleDDPGLoss,
+    ForeachSoftUpdate,
     MVEEstimator,
     RAVEValueEstimator,
     STEVEEstimator,
@@ -35,6 +42,8 @@ __all__ = [
     "AdaptiveAlpha",
     "EnsembleDDPGLoss",
     "EpsilonGaussianModule",
+    "ForeachSoftUpdate",
+    "TensorCall",
     "WorldModelEnsemble",
     "WorldModelLoss",
     "ValueExpansionEstimator",

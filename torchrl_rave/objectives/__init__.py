@@ -2,6 +2,7 @@
 
 from torchrl_rave.objectives import functional
 from torchrl_rave.objectives.ensemble_ddpg import EnsembleDDPGLoss
+from torchrl_rave.objectives.target_update import ForeachSoftUpdate
 from torchrl_rave.objectives.value_expansion import (
     MVEEstimator,
     RAVEValueEstimator,
@@ -14,6 +15,7 @@ from torchrl_rave.objectives.world_model_loss import WorldModelLoss, gaussian_nl
 __all__ = [
     "functional",
     "EnsembleDDPGLoss",
+    "ForeachSoftUpdate",
     "MVEEstimator",
     "RAVEValueEstimator",
     "STEVEEstimator",

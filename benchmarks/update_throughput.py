@@ -1,0 +1,495 @@
+"""How fast is one training update? RAVE, STEVE and our DDPG against plain PyTorch and
+TorchRL's stock DDPGLoss, as ratios measured in one process.
+
+    python benchmarks/update_throughput.py                 # CPU-friendly sizes, < 5 min
+    python benchmarks/update_throughput.py --device cuda   # on a GPU
+    python benchmarks/update_throughput.py --help
+
+Measured, in this order:
+
+1. dense float32 matmul peak (GFLOP/s) of this device;
+2. full updates at the recipe's default sizes (``recipes/config.yaml``, Hopper-v5 shapes):
+   a plain-PyTorch DDPG, TorchRL's stock ``DDPGLoss``, and the recipe's ``ddpg``, ``steve``
+   and ``rave`` (world-model step + K critics + actor + soft target update, exactly the
+   recipe's ``world_model_update`` / ``agent_update``); and the value target alone;
+3. the paper's row: seconds for 500 batches of 512 at the paper's sizes (``preset=paper``),
+   RAVE vs STEVE vs DDPG (extrapolated from ``--paper-batches`` timed batches);
+4. a scaling table: one RAVE update as N, K, H_max and the batch size grow.
+
+FLOPs per update are counted with ``torch.utils.flop_counter`` (matmuls forward and
+backward), so "fraction of peak" is counted FLOPs x updates/s over the matmul peak.
+Timings interleave the cases over several rounds and report the median, so slow drift of
+the machine hits every case alike. Results go to stdout and a JSON file.
+"""
+
+from __future__ import annotations
+
+import argparse
+import copy
+import json
+import os
+import platform
+import statistics
+import sys
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+import torch
+from hydra import compose, initialize_config_dir
+from tensordict import TensorDict
+from torch import nn
+from torch.utils.flop_counter import FlopCounterMode
+from torchrl.data import Bounded
+from torchrl.modules import MLP, Actor, ValueOperator
+from torchrl.objectives import DDPGLoss, SoftUpdate, ValueEstimators
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT / "recipes"))
+
+import utils as recipe  # noqa: E402
+
+# Hopper-v5's shapes; the networks' sizes come from the recipe's config.
+OBS_DIM, ACT_DIM = 11, 3
+
+
+def batches(batch_size: int, device: torch.device, count: int = 8) -> list[TensorDict]:
+    """A few fixed random batches (the replay buffer is not what is measured)."""
+    g = torch.Generator().manual_seed(0)
+
+    def one():
+        return TensorDict(
+            {
+                "observation": torch.randn(batch_size, OBS_DIM, generator=g),
+                "action": torch.rand(batch_size, ACT_DIM, generator=g) * 2 - 1,
+                ("next", "observation"): torch.randn(batch_size, OBS_DIM, generator=g),
+                ("next", "reward"): torch.randn(batch_size, 1, generator=g),
+                ("next", "done"): torch.zeros(batch_size, 1, dtype=torch.bool),
+                ("next", "terminated"): torch.zeros(batch_size, 1, dtype=torch.bool),
+            },
+            [batch_size],
+        ).to(device)
+
+    return [one() for _ in range(count)]
+
+
+class _GlobalOnly:
+    """Stands in for FlopCounterMode's module tracker, which cannot hash TensorDictParams
+    (TorchRL losses hold their parameters in them): every FLOP is counted as 'Global'."""
+
+    parents = ("Global",)
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *args):
+        return False
+
+
+class FlopCounter(FlopCounterMode):
+    """``torch.utils.flop_counter`` totals (matmuls forward and backward), no per-module split."""
+
+    def __init__(self) -> None:
+        super().__init__(display=False)
+        self.mod_tracker = _GlobalOnly()
+
+
+class Case:
+    """One measured workload: ``step()`` does one update on the next batch."""
+
+    def __init__(self, name: str, step: Callable[[TensorDict], object], data: list[TensorDict]):
+        self.name, self._step, self.data = name, step, data
+        self.i = 0
+        self.samples: list[float] = []
+        self.flops = 0
+
+    def step(self) -> None:
+        self._step(self.data[self.i % len(self.data)])
+        self.i += 1
+
+    def count_flops(self) -> None:
+        with FlopCounter() as counter:
+            self.step()
+        self.flops = counter.get_total_flops()
+
+    @property
+    def seconds(self) -> float:
+        return statistics.median(self.samples)
+
+
+def sync(device: torch.device) -> None:
+    if device.type == "cuda":
+        torch.cuda.synchronize(device)
+
+
+def measure(cases: list[Case], device: torch.device, seconds: float, rounds: int = 5) -> None:
+    """Median seconds per update of each case over ``rounds`` interleaved rounds."""
+    for case in cases:  # warm-up (allocations, lazy planning, cuDNN/BLAS selection)
+        for _ in range(3):
+            case.step()
+        sync(device)
+        t = time.perf_counter()
+        case.step()
+        sync(device)
+        case._n = max(2, int(seconds / rounds / max(time.perf_counter() - t, 1e-6)))
+    for _ in range(rounds):
+        for case in cases:
+            sync(device)
+            t = time.perf_counter()
+            for _ in range(case._n):
+                case.step()
+            sync(device)
+            case.samples.append((time.perf_counter() - t) / case._n)
+
+
+def matmul_peak(device: torch.device, size: int = 1024, seconds: float = 2.0) -> float:
+    """Dense float32 matmul throughput in GFLOP/s (best of a few timed blocks)."""
+    a = torch.randn(size, size, device=device)
+    b = torch.randn(size, size, device=device)
+    for _ in range(3):
+        a @ b
+    sync(device)
+    best = 0.0
+    deadline = time.perf_counter() + seconds
+    while time.perf_counter() < deadline:
+        t = time.perf_counter()
+        for _ in range(5):
+            a @ b
+        sync(device)
+        best = max(best, 5 * 2 * size**3 / (time.perf_counter() - t) / 1e9)
+    return best
+
+
+# ------------------------------------------------------------------- the workloads
+def recipe_config(overrides: list[str]):
+    with initialize_config_dir(config_dir=str(ROOT / "recipes"), version_base="1.3"):
+        return compose("config", overrides=overrides)
+
+
+class _Spec:
+    """The bits of an env the recipe's builders read (no simulator needed)."""
+
+    def __init__(self, device):
+        from torchrl.data import Composite, Unbounded
+
+        self.observation_spec = Composite(
+            observation=Unbounded((OBS_DIM,), device=device), device=device
+        )
+        self.action_spec = Bounded(-1.0, 1.0, (ACT_DIM,), device=device)
+
+
+def recipe_update(algorithm: str, overrides: list[str], device, target_only=False):
+    """The recipe's update for ``algorithm`` (its own builders and update functions)."""
+    cfg = recipe_config([f"algorithm={algorithm}", *overrides])
+    algo = recipe.check_config(cfg)
+    torch.manual_seed(0)
+    env = _Spec(device)
+    actor, _ = recipe.make_actor(cfg, env, algo)
+    critic = recipe.make_critic(cfg, env)
+    world_model = recipe.make_world_model(cfg, env).to(device) if algo.model_based else None
+    loss, updater = recipe.make_loss(cfg, env, algo, actor, critic, world_model)
+    loss = loss.to(device)
+    if world_model is not None:
+        # the value estimator's own input checks sync the device once per call; the
+        # recipe keeps them, and so does the benchmark
+        world_model.update_normalizers(
+            torch.randn(256, OBS_DIM, device=device),
+            torch.rand(256, ACT_DIM, device=device) * 2 - 1,
+            torch.randn(256, OBS_DIM, device=device),
+            torch.randn(256, device=device),
+        )
+    optimizers = recipe.make_optimizers(cfg, loss, world_model)
+    wm_loss = recipe.make_world_model_loss(world_model)
+
+    if target_only:
+        estimator = loss.value_estimator
+
+        if algo.model_based:
+
+            def step(batch):
+                return estimator.value_estimate(batch)
+
+        else:
+
+            def step(batch):
+                # TD(0) needs the next value first: what EnsembleDDPGLoss computes for it
+                with torch.no_grad():
+                    return loss.value_loss(batch)[1]["target_value"]
+
+        return step, cfg
+
+    def step(batch):
+        if wm_loss is not None:
+            recipe.world_model_update(wm_loss, optimizers["world_model"], batch)
+        recipe.agent_update(loss, optimizers, updater, batch)
+
+    return step, cfg
+
+
+def _mlp(in_f, out_f, cells, layers):
+    return MLP(
+        in_features=in_f,
+        out_features=out_f,
+        num_cells=[cells] * (layers - 1),
+        activation_class=nn.ReLU,
+    )
+
+
+def plain_ddpg_update(cfg, device):
+    """DDPG as one writes it in plain PyTorch: same networks, fused Adam, soft targets."""
+    n = cfg.network
+    actor = nn.Sequential(_mlp(OBS_DIM, ACT_DIM, n.actor_cells, n.num_layers), nn.Tanh()).to(device)
+    critic = _mlp(OBS_DIM + ACT_DIM, 1, n.critic_cells, n.num_layers).to(device)
+    actor_t, critic_t = copy.deepcopy(actor), copy.deepcopy(critic)
+    opt_a = torch.optim.Adam(actor.parameters(), lr=3e-4, fused=True)
+    opt_c = torch.optim.Adam(critic.parameters(), lr=3e-4, fused=True)
+    pairs = [
+        (list(t.parameters()), list(m.parameters()))
+        for t, m in ((actor_t, actor), (critic_t, critic))
+    ]
+    gamma, tau = cfg.optim.gamma, cfg.optim.tau
+
+    def step(batch):
+        s, a = batch["observation"], batch["action"]
+        s2, r = batch["next", "observation"], batch["next", "reward"]
+        not_done = 1.0 - batch["next", "terminated"].float()
+        with torch.no_grad():
+            y = r + gamma * not_done * critic_t(torch.cat([s2, actor_t(s2)], -1))
+        critic_loss = (critic(torch.cat([s, a], -1)) - y).pow(2).mean()
+        opt_c.zero_grad()
+        critic_loss.backward()
+        opt_c.step()
+        actor_loss = -critic(torch.cat([s, actor(s)], -1)).mean()
+        opt_a.zero_grad()
+        actor_loss.backward()
+        opt_a.step()
+        with torch.no_grad():
+            for target, online in pairs:
+                torch._foreach_lerp_(target, online, tau)
+
+    return step
+
+
+def stock_ddpg_update(cfg, device):
+    """TorchRL's DDPGLoss with its TD(0) estimator and SoftUpdate, as its docs build it."""
+    n = cfg.network
+    spec = Bounded(-1.0, 1.0, (ACT_DIM,), device=device)
+    actor = Actor(
+        nn.Sequential(_mlp(OBS_DIM, ACT_DIM, n.actor_cells, n.num_layers), nn.Tanh()), spec=spec
+    )
+    critic = ValueOperator(
+        _mlp(OBS_DIM + ACT_DIM, 1, n.critic_cells, n.num_layers),
+        in_keys=["observation", "action"],
+    )
+    loss = DDPGLoss(actor, critic, delay_actor=True, delay_value=True).to(device)
+    loss.make_value_estimator(ValueEstimators.TD0, gamma=cfg.optim.gamma)
+    updater = SoftUpdate(loss, tau=cfg.optim.tau)
+    opt_a = torch.optim.Adam(loss.actor_network_params.values(True, True), lr=3e-4, fused=True)
+    opt_c = torch.optim.Adam(loss.value_network_params.values(True, True), lr=3e-4, fused=True)
+
+    def step(batch):
+        out = loss(batch)
+        opt_a.zero_grad()
+        opt_c.zero_grad()
+        (out["loss_actor"] + out["loss_value"]).backward()
+        opt_a.step()
+        opt_c.step()
+        updater.step()
+
+    return step
+
+
+# ----------------------------------------------------------------------- sections
+def section_default(device, seconds, peak) -> dict:
+    """All workloads at the recipe's default (CPU) sizes."""
+    cfg = recipe_config([])
+    data = batches(cfg.replay_buffer.batch_size, device)
+    cases = [
+        Case("plain PyTorch DDPG", plain_ddpg_update(cfg, device), data),
+        Case("TorchRL DDPGLoss", stock_ddpg_update(cfg, device), data),
+    ]
+    for algo in ("ddpg", "steve", "rave"):
+        cases.append(Case(f"ours: {algo}", recipe_update(algo, [], device)[0], data))
+    for algo in ("ddpg", "steve", "rave"):
+        step = recipe_update(algo, [], device, target_only=True)[0]
+        cases.append(Case(f"target only: {algo}", step, data))
+    for case in cases:
+        case.count_flops()
+    measure(cases, device, seconds)
+    rows = {}
+    for case in cases:
+        rows[case.name] = {
+            "ms_per_update": 1e3 * case.seconds,
+            "updates_per_s": 1.0 / case.seconds,
+            "gflop_per_update": case.flops / 1e9,
+            "gflop_per_s": case.flops / case.seconds / 1e9,
+            "fraction_of_peak": case.flops / case.seconds / 1e9 / peak,
+        }
+    t = {name: row["ms_per_update"] for name, row in rows.items()}
+    ratios = {
+        "rave / steve (full update)": t["ours: rave"] / t["ours: steve"],
+        "rave / steve (target only)": t["target only: rave"] / t["target only: steve"],
+        "ours ddpg / plain PyTorch DDPG": t["ours: ddpg"] / t["plain PyTorch DDPG"],
+        "TorchRL DDPGLoss / plain PyTorch DDPG": t["TorchRL DDPGLoss"] / t["plain PyTorch DDPG"],
+        "rave / ours ddpg": t["ours: rave"] / t["ours: ddpg"],
+    }
+    sizes = {
+        "batch": cfg.replay_buffer.batch_size,
+        "N": cfg.world_model.num_models,
+        "K (steve, rave)": 4,
+        "H_max": cfg.estimator.horizon,
+        "actor/critic": f"{cfg.network.num_layers} x {cfg.network.critic_cells}",
+        "transition": f"{cfg.world_model.transition_layers} x {cfg.world_model.transition_cells}",
+        "reward/termination": f"{cfg.world_model.reward_layers} x {cfg.world_model.reward_cells}",
+    }
+    return {"sizes": sizes, "rows": rows, "ratios": ratios}
+
+
+def section_paper(device, batches_timed: int) -> dict:
+    """Seconds for 500 batches of 512 at the paper's sizes (extrapolated when timing fewer)."""
+    overrides = ["preset=paper"]
+    cfg = recipe_config(overrides)
+    data = batches(cfg.replay_buffer.batch_size, device, count=4)
+    out = {}
+    for algo in ("ddpg", "steve", "rave"):
+        step, _ = recipe_update(algo, overrides, device)
+        case = Case(algo, step, data)
+        case.step()  # warm-up
+        sync(device)
+        t = time.perf_counter()
+        for _ in range(batches_timed):
+            case.step()
+        sync(device)
+        per_batch = (time.perf_counter() - t) / batches_timed
+        out[algo] = {"s_per_batch": per_batch, "s_per_500_batches": 500 * per_batch}
+    out["rave / steve"] = out["rave"]["s_per_batch"] / out["steve"]["s_per_batch"]
+    out["batches_timed"] = batches_timed
+    return out
+
+
+def section_scaling(device, seconds) -> list[dict]:
+    """One RAVE update (full) as one of N, K, H_max, batch grows from the default."""
+    base = {"N": 4, "K": 4, "H": 3, "batch": 128}
+    grid = {"N": [1, 2, 4, 8], "K": [1, 2, 4, 8], "H": [0, 1, 3, 6], "batch": [64, 128, 256, 512]}
+    cases, meta = [], []
+    for knob, values in grid.items():
+        for v in values:
+            p = {**base, knob: v}
+            overrides = [
+                f"world_model.num_models={p['N']}",
+                f"network.num_critics={p['K']}",
+                f"estimator.horizon={p['H']}",
+                f"replay_buffer.batch_size={p['batch']}",
+            ]
+            step, _ = recipe_update("rave", overrides, device)
+            cases.append(Case(f"{knob}={v}", step, batches(p["batch"], device, count=4)))
+            meta.append((knob, v, p))
+    for case in cases:
+        case.count_flops()
+    measure(cases, device, seconds, rounds=3)
+    rows = []
+    for case, (knob, v, _) in zip(cases, meta, strict=True):
+        base_case = cases[[m[2] == {**base} and m[0] == knob for m in meta].index(True)]
+        rows.append(
+            {
+                "knob": knob,
+                "value": v,
+                "ms_per_update": 1e3 * case.seconds,
+                "gflop_per_update": case.flops / 1e9,
+                "time_vs_default": case.seconds / base_case.seconds,
+                "flops_vs_default": case.flops / base_case.flops,
+            }
+        )
+    return rows
+
+
+# --------------------------------------------------------------------------- report
+def print_report(result: dict) -> None:
+    print(f"\ndevice: {result['device']}  threads: {result['threads']}")
+    print(f"dense float32 matmul peak: {result['matmul_peak_gflops']:.1f} GFLOP/s\n")
+    d = result["default"]
+    print("default sizes: " + ", ".join(f"{k} {v}" for k, v in d["sizes"].items()))
+    print(
+        f"{'workload':<24}{'ms/update':>10}{'updates/s':>11}{'GFLOP/upd':>11}{'GFLOP/s':>9}"
+        f"{'of peak':>9}"
+    )
+    for name, r in d["rows"].items():
+        print(
+            f"{name:<24}{r['ms_per_update']:>10.2f}{r['updates_per_s']:>11.1f}"
+            f"{r['gflop_per_update']:>11.3f}{r['gflop_per_s']:>9.1f}"
+            f"{100 * r['fraction_of_peak']:>8.1f}%"
+        )
+    print("\nratios (time per update):")
+    for name, v in d["ratios"].items():
+        print(f"  {name:<40}{v:6.2f}")
+    if "paper" in result:
+        p = result["paper"]
+        print(
+            f"\npaper sizes, 500 batches of 512 (extrapolated from {p['batches_timed']} batches):"
+        )
+        for algo in ("rave", "steve", "ddpg"):
+            print(f"  {algo:<6}{p[algo]['s_per_500_batches']:9.1f} s")
+        print(
+            f"  rave / steve {p['rave / steve']:.2f}  (paper, on its GPU: 13.20 s / 10.67 s = 1.24)"
+        )
+    if "scaling" in result:
+        print("\nRAVE update as one knob grows (default N=4, K=4, H_max=3, batch=128):")
+        print(f"{'knob':<12}{'ms/update':>10}{'GFLOP':>9}{'time x':>8}{'FLOPs x':>9}")
+        for r in result["scaling"]:
+            print(
+                f"{r['knob'] + '=' + str(r['value']):<12}{r['ms_per_update']:>10.2f}"
+                f"{r['gflop_per_update']:>9.3f}{r['time_vs_default']:>8.2f}"
+                f"{r['flops_vs_default']:>9.2f}"
+            )
+
+
+def main(argv=None) -> dict:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--device", default="cpu", help="cpu or cuda (default cpu)")
+    parser.add_argument(
+        "--seconds", type=float, default=6.0, help="timed seconds per workload (default 6)"
+    )
+    parser.add_argument(
+        "--paper-batches",
+        type=int,
+        default=3,
+        help="batches timed at the paper's sizes, extrapolated to 500 (default 3; 0 skips)",
+    )
+    parser.add_argument("--no-scaling", action="store_true", help="skip the scaling table")
+    parser.add_argument(
+        "--threads", type=int, default=None, help="torch threads (default: torch's own)"
+    )
+    parser.add_argument(
+        "--json",
+        default=str(ROOT / "benchmarks" / "update_throughput.json"),
+        help="where to write the results",
+    )
+    args = parser.parse_args(argv)
+    if args.threads:
+        torch.set_num_threads(args.threads)
+    device = torch.device(args.device)
+    if device.type == "cuda" and not torch.cuda.is_available():
+        parser.error("--device cuda but torch.cuda.is_available() is False")
+    started = time.perf_counter()
+    peak = matmul_peak(device)
+    name = torch.cuda.get_device_name(device) if device.type == "cuda" else platform.processor()
+    result = {
+        "device": f"{device.type}: {name or platform.machine()}, {os.cpu_count()} cores",
+        "threads": torch.get_num_threads(),
+        "torch": torch.__version__,
+        "matmul_peak_gflops": peak,
+        "default": section_default(device, args.seconds, peak),
+    }
+    if args.paper_batches > 0:
+        result["paper"] = section_paper(device, args.paper_batches)
+    if not args.no_scaling:
+        result["scaling"] = section_scaling(device, args.seconds / 3)
+    result["wall_s"] = time.perf_counter() - started
+    print_report(result)
+    print(f"\nwall time {result['wall_s']:.0f} s; results in {args.json}")
+    Path(args.json).write_text(json.dumps(result, indent=2))
+    return result
+
+
+if __name__ == "__main__":
+    main()
