@@ -345,7 +345,7 @@ def section_default(device, seconds, peak) -> dict:
     return {"sizes": sizes, "rows": rows, "ratios": ratios}
 
 
-def section_paper(device, batches_timed: int) -> dict:
+def section_paper(device, batches_timed: int, peak: float) -> dict:
     """Seconds for 500 batches of 512 at the paper's sizes (extrapolated when timing fewer)."""
     overrides = ["preset=paper"]
     cfg = recipe_config(overrides)
@@ -354,15 +354,21 @@ def section_paper(device, batches_timed: int) -> dict:
     for algo in ("ddpg", "steve", "rave"):
         step, _ = recipe_update(algo, overrides, device)
         case = Case(algo, step, data)
-        case.step()  # warm-up
+        case.count_flops()  # doubles as the warm-up
         sync(device)
         t = time.perf_counter()
         for _ in range(batches_timed):
             case.step()
         sync(device)
         per_batch = (time.perf_counter() - t) / batches_timed
-        out[algo] = {"s_per_batch": per_batch, "s_per_500_batches": 500 * per_batch}
+        out[algo] = {
+            "s_per_batch": per_batch,
+            "s_per_500_batches": 500 * per_batch,
+            "gflop_per_update": case.flops / 1e9,
+            "fraction_of_peak": case.flops / per_batch / 1e9 / peak,
+        }
     out["rave / steve"] = out["rave"]["s_per_batch"] / out["steve"]["s_per_batch"]
+    out["rave / steve (FLOPs)"] = out["rave"]["gflop_per_update"] / out["steve"]["gflop_per_update"]
     out["batches_timed"] = batches_timed
     return out
 
@@ -428,7 +434,12 @@ def print_report(result: dict) -> None:
             f"\npaper sizes, 500 batches of 512 (extrapolated from {p['batches_timed']} batches):"
         )
         for algo in ("rave", "steve", "ddpg"):
-            print(f"  {algo:<6}{p[algo]['s_per_500_batches']:9.1f} s")
+            r = p[algo]
+            print(
+                f"  {algo:<6}{r['s_per_500_batches']:9.1f} s   {r['gflop_per_update']:7.2f} GFLOP"
+                f"/update   {100 * r['fraction_of_peak']:5.1f}% of peak"
+            )
+        print(f"  rave / steve FLOPs per update {p['rave / steve (FLOPs)']:.2f}")
         print(
             f"  rave / steve {p['rave / steve']:.2f}  (paper, on its GPU: 13.20 s / 10.67 s = 1.24)"
         )
@@ -481,7 +492,7 @@ def main(argv=None) -> dict:
         "default": section_default(device, args.seconds, peak),
     }
     if args.paper_batches > 0:
-        result["paper"] = section_paper(device, args.paper_batches)
+        result["paper"] = section_paper(device, args.paper_batches, peak)
     if not args.no_scaling:
         result["scaling"] = section_scaling(device, args.seconds / 3)
     result["wall_s"] = time.perf_counter() - started

@@ -1,0 +1,168 @@
+"""Falling rate: the fraction of episodes that end by termination (the agent fell) before
+the time limit, with a binomial confidence interval; the paper's figure 5.
+
+python recipes/falling_rate.py rave='outputs/compare/Hopper-v5/rave/seed*' \
+    steve='outputs/compare/Hopper-v5/steve/seed*' ddpg='outputs/compare/Hopper-v5/ddpg/seed*' \
+    --episodes 50 --out falling_rate.png
+
+Each positional argument is ``LABEL=PATTERN``; the run directories matching the glob are
+the seeds of one algorithm. Two results:
+
+- **final**: the latest checkpoint of every run plays ``--episodes`` deterministic
+  episodes; falls are pooled over a group's seeds (``k`` of ``n``) and reported as
+  ``k / n`` with a 95 % Wilson score interval (``--episodes 0`` skips this);
+- **over training**: the falling rates every run logged at its periodic evaluations
+  (``eval/falling_rate``, over ``eval.episodes`` episodes each) pooled over seeds at each
+  step, drawn with the same interval as a band.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import os
+import sys
+from pathlib import Path
+
+import numpy as np
+import torch
+
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+from plot_curves import parse_groups, read_metric  # noqa: E402
+
+Z95 = 1.959963984540054  # the standard normal's 97.5 % quantile
+
+
+def wilson_interval(falls: int, episodes: int, z: float = Z95) -> tuple[float, float]:
+    """Wilson score interval of a binomial proportion ``falls / episodes``.
+
+    Examples:
+        >>> lo, hi = wilson_interval(3, 10)
+        >>> round(lo, 3), round(hi, 3)
+        (0.108, 0.603)
+    """
+    if episodes <= 0:
+        raise ValueError(f"episodes must be > 0, got {episodes}")
+    if not 0 <= falls <= episodes:
+        raise ValueError(f"falls must lie in [0, {episodes}], got {falls}")
+    p = falls / episodes
+    z2n = z * z / episodes
+    centre = (p + z2n / 2) / (1 + z2n)
+    half = z / (1 + z2n) * math.sqrt(p * (1 - p) / episodes + z2n / (4 * episodes))
+    return max(0.0, centre - half), min(1.0, centre + half)
+
+
+def final_falls(run_dir: Path, episodes: int, seed: int) -> int:
+    """Falls in ``episodes`` deterministic episodes of the run's latest checkpoint."""
+    import utils
+    from q_vs_return import load_run
+
+    _, env, actor, _ = load_run(run_dir)
+    env.set_seed(seed)
+    rate = utils.evaluate(env, actor, episodes)["eval/falling_rate"]
+    return round(rate * episodes)
+
+
+def logged_falls(
+    run_dirs: list[Path], eval_episodes: int | None
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Steps every run logged, and the falls and episodes pooled over runs at each."""
+    import utils
+
+    data = []
+    for run in run_dirs:
+        steps, rates = read_metric(run, "eval/falling_rate")
+        n = eval_episodes if eval_episodes else int(utils.saved_config(run).eval.episodes)
+        data.append((steps, np.rint(rates * n).astype(int), n))
+    common = sorted(set.intersection(*(set(s.tolist()) for s, _, _ in data)))
+    falls = sum(k[np.searchsorted(s, common)] for s, k, _ in data)
+    episodes = sum(n for _, _, n in data)
+    return np.array(common), np.asarray(falls), np.full(len(common), episodes)
+
+
+def plot(over_training: dict, out: Path, title: str | None) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(7, 4.5))
+    for label, (steps, falls, episodes) in over_training.items():
+        rate = falls / episodes
+        bounds = [wilson_interval(int(k), int(n)) for k, n in zip(falls, episodes, strict=True)]
+        lo, hi = [b[0] for b in bounds], [b[1] for b in bounds]
+        (line,) = ax.plot(steps, rate, marker="o", markersize=3, label=f"{label}")
+        ax.fill_between(steps, lo, hi, alpha=0.2, color=line.get_color())
+    ax.set_xlabel("environment steps")
+    ax.set_ylabel("falling rate (episodes that terminate)")
+    ax.set_ylim(-0.02, 1.02)
+    ax.set_title(title or "Falling rate over training (band: 95% Wilson interval)")
+    ax.legend()
+    ax.grid(alpha=0.3)
+    fig.tight_layout()
+    fig.savefig(out, dpi=120)
+    plt.close(fig)
+
+
+def main(argv: list[str] | None = None) -> str:
+    parser = argparse.ArgumentParser(
+        description="Falling rate per algorithm with a 95%% Wilson interval, and over training."
+    )
+    parser.add_argument("groups", nargs="+", help="LABEL=PATTERN (a glob of run directories)")
+    parser.add_argument(
+        "--episodes",
+        type=int,
+        default=50,
+        help="evaluation episodes per run from its latest checkpoint (0: logged rates only)",
+    )
+    parser.add_argument("--seed", type=int, default=2024, help="evaluation env seed")
+    parser.add_argument(
+        "--eval-episodes",
+        type=int,
+        default=None,
+        help="episodes behind each logged rate (default: the run's eval.episodes)",
+    )
+    parser.add_argument("--out", type=Path, default=Path("falling_rate.png"))
+    parser.add_argument("--title", default=None)
+    args = parser.parse_args(argv)
+    if args.episodes < 0:
+        parser.error("--episodes must be >= 0")
+    try:
+        groups = parse_groups(args.groups)
+    except (ValueError, FileNotFoundError) as e:
+        parser.error(str(e))
+
+    lines = []
+    if args.episodes:
+        lines += [
+            "| run | seeds | falls / episodes | falling rate | 95% interval |",
+            "| --- | --- | --- | --- | --- |",
+        ]
+        for label, runs in groups.items():
+            torch.manual_seed(args.seed)
+            k = sum(final_falls(run, args.episodes, args.seed) for run in runs)
+            n = args.episodes * len(runs)
+            lo, hi = wilson_interval(k, n)
+            lines.append(
+                f"| {label} | {len(runs)} | {k} / {n} | {k / n:.3f} | [{lo:.3f}, {hi:.3f}] |"
+            )
+    over_training = {
+        label: logged_falls(runs, args.eval_episodes) for label, runs in groups.items()
+    }
+    plot(over_training, args.out, args.title)
+    lines.append("")
+    lines.append("last logged evaluation (pooled over seeds):")
+    for label, (steps, falls, episodes) in over_training.items():
+        lo, hi = wilson_interval(int(falls[-1]), int(episodes[-1]))
+        lines.append(
+            f"  {label}: step {steps[-1]}, {falls[-1]} / {episodes[-1]} fell "
+            f"({falls[-1] / episodes[-1]:.3f}, 95% [{lo:.3f}, {hi:.3f}])"
+        )
+    text = "\n".join(lines).strip("\n")
+    print(text)
+    print(f"figure: {args.out}")
+    return text
+
+
+if __name__ == "__main__":
+    main()
