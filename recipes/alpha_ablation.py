@@ -1,0 +1,90 @@
+"""The paper's alpha ablation (figure 6): RAVE with a constant alpha of 0, 0.5 and 2.0 and
+with the dynamic alpha of eq. 12, same env and seeds, learning curves side by side.
+
+python recipes/alpha_ablation.py --env Hopper-v5 --seeds 0 1 --frames 30000 --jobs 2 \
+    --out outputs/compare
+
+Runs live in ``<out>/<env>/<variant>/seed<k>`` (variants ``rave_alpha0``, ``rave_alpha0.5``,
+``rave_alpha2``, and ``rave`` for the dynamic alpha, the layout of ``compare.py``, so a
+``compare.py`` grid's RAVE runs are reused). Finished runs are skipped and interrupted ones
+resumed. It writes ``<out>/<env>/alpha_ablation.png`` (eval return, mean ± std over seeds)
+and prints a table of the return at ``--at`` frames. Extra ``key=value`` arguments after
+``--`` go to every run.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from compare import final_eval, launch, run_dir  # noqa: E402
+from plot_curves import curves, plot, table  # noqa: E402
+
+# variant -> (algorithm, overrides, legend label)
+VARIANTS = {
+    "rave_alpha0": ("rave_constant", ["estimator.alpha=0.0"], "alpha = 0 (constant)"),
+    "rave_alpha0.5": ("rave_constant", ["estimator.alpha=0.5"], "alpha = 0.5 (constant)"),
+    "rave_alpha2": ("rave_constant", ["estimator.alpha=2.0"], "alpha = 2.0 (constant)"),
+    "rave": ("rave", [], "dynamic alpha (eq. 12, alpha = 1.5)"),
+}
+
+
+def main(argv: list[str] | None = None) -> str:
+    argv = sys.argv[1:] if argv is None else argv
+    extra = argv[argv.index("--") + 1 :] if "--" in argv else []
+    argv = argv[: argv.index("--")] if "--" in argv else argv
+    parser = argparse.ArgumentParser(
+        description="RAVE with constant alpha 0 / 0.5 / 2.0 and the dynamic alpha; curves."
+    )
+    parser.add_argument("--env", default="Hopper-v5")
+    parser.add_argument("--seeds", nargs="+", type=int, default=[0, 1])
+    parser.add_argument("--frames", type=int, default=30_000)
+    parser.add_argument("--jobs", type=int, default=1, help="runs side by side (1 thread each)")
+    parser.add_argument("--out", type=Path, default=Path("outputs/compare"))
+    parser.add_argument(
+        "--variants", nargs="+", default=list(VARIANTS), choices=list(VARIANTS), metavar="VARIANT"
+    )
+    parser.add_argument("--at", nargs="*", type=int, default=None, help="frames for the table")
+    parser.add_argument("--plot-only", action="store_true", help="run nothing, plot what exists")
+    args = parser.parse_args(argv)
+
+    todo = [
+        (variant, seed)
+        for variant in args.variants
+        for seed in args.seeds
+        if final_eval(run_dir(args.out, args.env, variant, seed), variant, args.frames) is None
+    ]
+
+    def job(item):
+        variant, seed = item
+        algorithm, overrides, _ = VARIANTS[variant]
+        path = run_dir(args.out, args.env, variant, seed)
+        run_extra = [*extra, *overrides, f"logger.exp_name={variant}"]
+        return launch(path, args.env, algorithm, seed, args.frames, run_extra)
+
+    if todo and not args.plot_only:
+        print(f"{len(todo)} runs to go, {args.jobs} at a time, logs in <run dir>/stdout.log")
+        with ThreadPoolExecutor(args.jobs) as pool:
+            for item, code in zip(todo, pool.map(job, todo), strict=True):
+                print(f"{item}: {'done' if code == 0 else f'exit code {code}'}")
+                if code != 0:
+                    raise SystemExit(f"run {item} failed; see its stdout.log")
+
+    groups = {
+        VARIANTS[v][2]: [run_dir(args.out, args.env, v, s) for s in args.seeds]
+        for v in args.variants
+    }
+    data = curves(groups, "eval/return")
+    out = args.out / args.env / "alpha_ablation.png"
+    plot(data, "eval/return", out, title=f"RAVE alpha ablation on {args.env}")
+    text = table(data, args.at or [args.frames], "eval/return")
+    print(text)
+    print(f"figure: {out}")
+    return text
+
+
+if __name__ == "__main__":
+    main()
