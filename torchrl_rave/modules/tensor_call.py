@@ -164,11 +164,13 @@ class TensorCall:
                 x = xs[0] if len(xs) == 1 else torch.cat(xs, -1)
                 for key, is_linear, layer in layers:
                     if not is_linear:
-                        x = layer(x)
+                        x = layer.forward(x)  # element-wise, parameter-free: no hooks needed
                         continue
-                    p = params.get(key) if params is not None else None
-                    w = layer.weight if p is None else p.get("weight")
-                    b = layer.bias if p is None else p.get("bias", None)
+                    if params is None:
+                        w, b = layer.weight, layer.bias
+                    else:
+                        w = params.get((*key, "weight"))
+                        b = None if layer.bias is None else params.get((*key, "bias"))
                     x = F.linear(x, w, b) if w.dim() == 2 else _stacked_linear(x, w, b)
                 values[out_key] = x
             elif step[0] == "tanh":

@@ -40,6 +40,9 @@ class ForeachSoftUpdate(SoftUpdate):
         for name in self._target_names:  # as TorchRL does: lets the loss refresh its targets
             getattr(self.loss_module, name)
         targets, sources = [], []
+        key = next(iter(self._sources.keys()))
+        leaf = next(iter(self._sources.get(key).keys(True, True)))
+        self._probe = (key, leaf if isinstance(leaf, tuple) else (leaf,))
         for key, source in self._sources.items():
             target = self._targets.get(f"target_{key}")
             if target.requires_grad:
@@ -52,12 +55,10 @@ class ForeachSoftUpdate(SoftUpdate):
     def _stale(self) -> bool:
         if self._pairs is None:
             return True
-        first_key = next(iter(self._sources.keys()))
-        target = self._targets.get(f"target_{first_key}")
-        leaf = next(iter(self._sources.get(first_key).keys(True, True)))
+        key, leaf = self._probe
         return (
-            target.get(leaf).data_ptr() != self._pairs[0][0].data_ptr()
-            or self._sources.get(first_key).get(leaf).data_ptr() != self._pairs[1][0].data_ptr()
+            self._targets.get((f"target_{key}", *leaf)).data_ptr() != self._pairs[0][0].data_ptr()
+            or self._sources.get((key, *leaf)).data_ptr() != self._pairs[1][0].data_ptr()
         )
 
     def step(self) -> None:
