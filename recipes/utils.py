@@ -289,7 +289,10 @@ def make_loss(cfg: DictConfig, env, algo: Algorithm, actor, critic, world_model)
         loss.make_value_estimator(ValueEstimators.TD0, gamma=cfg.optim.gamma)
     else:
         e = cfg.estimator
-        kwargs = dict(world_model=world_model, gamma=cfg.optim.gamma, horizon=e.horizon)
+        # check_inputs=False: batches were checked for NaN/inf on their way into the buffer
+        kwargs = dict(
+            world_model=world_model, gamma=cfg.optim.gamma, horizon=e.horizon, check_inputs=False
+        )
         if algo.estimator == "rave":
             kwargs.update(
                 alpha=e.alpha,
@@ -317,7 +320,8 @@ def make_optimizers(cfg: DictConfig, loss, world_model) -> dict[str, torch.optim
 
 
 def make_world_model_loss(world_model: WorldModelEnsemble | None) -> WorldModelLoss | None:
-    return None if world_model is None else WorldModelLoss(world_model)
+    # the collector's batches are checked for NaN/inf before they reach the buffer
+    return None if world_model is None else WorldModelLoss(world_model, check_finite=False)
 
 
 def world_model_update(wm_loss: WorldModelLoss, optimizer, batch: TensorDictBase):

@@ -270,6 +270,11 @@ class TestWorldModelLoss:
             loss(bad)
         with pytest.raises(ValueError, match="observation"):
             loss(transitions(32, S=4))
+        # without the finiteness check (data checked upstream) NaN flows through
+        unchecked = WorldModelLoss(loss.world_model, check_finite=False)
+        assert torch.isnan(unchecked(bad)["transition_mse"])
+        with pytest.raises(ValueError, match="observation"):  # shapes are still checked
+            unchecked(transitions(32, S=4))
 
 
 class TestLearnsLinearGaussianSystem:

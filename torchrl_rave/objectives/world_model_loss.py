@@ -49,6 +49,10 @@ class WorldModelLoss(LossModule):
         logvar_bound_coeff (float): weight of the log-variance bound penalty. Defaults to 0.01.
         reward_coeff (float): weight of the reward loss. Defaults to 1.
         termination_coeff (float): weight of the termination loss. Defaults to 1.
+        check_finite (bool): reject NaN/inf in the batch with an error naming the entry
+            (one device sync per entry). Turn it off when the data were checked on the way
+            into the buffer, as the recipe does. Shapes are always checked. Defaults to
+            ``True``.
 
     Examples:
         >>> wm = WorldModelEnsemble(3, 1, num_models=2, transition_cells=8, reward_cells=8,
@@ -96,8 +100,10 @@ class WorldModelLoss(LossModule):
         logvar_bound_coeff: float = 0.01,
         reward_coeff: float = 1.0,
         termination_coeff: float = 1.0,
+        check_finite: bool = True,
     ) -> None:
         super().__init__()
+        self.check_finite = check_finite
         self.world_model = world_model
         self.bootstrap = bootstrap
         self.logvar_bound_coeff = logvar_bound_coeff
@@ -130,11 +136,18 @@ class WorldModelLoss(LossModule):
         wm = self.world_model
         keys = self.tensor_keys
         S, A = wm.observation_dim, wm.action_dim
-        obs = get_checked(tensordict, keys.observation, S).reshape(-1, S)
-        action = get_checked(tensordict, keys.action, A).reshape(-1, A)
-        next_obs = get_checked(tensordict, keys.next_observation, S).reshape(-1, S)
-        reward = get_checked(tensordict, keys.reward).reshape(-1, 1)
-        terminated = get_checked(tensordict, keys.terminated).reshape(-1, 1).to(obs.dtype)
+        check = self.check_finite
+        obs = get_checked(tensordict, keys.observation, S, check_finite=check).reshape(-1, S)
+        action = get_checked(tensordict, keys.action, A, check_finite=check).reshape(-1, A)
+        next_obs = get_checked(tensordict, keys.next_observation, S, check_finite=check).reshape(
+            -1, S
+        )
+        reward = get_checked(tensordict, keys.reward, check_finite=check).reshape(-1, 1)
+        terminated = (
+            get_checked(tensordict, keys.terminated, check_finite=check)
+            .reshape(-1, 1)
+            .to(obs.dtype)
+        )
         if not (obs.shape[0] == action.shape[0] == next_obs.shape[0] == reward.shape[0]):
             raise ValueError(
                 "observation, action, next observation and reward hold different numbers of "
