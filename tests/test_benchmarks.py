@@ -1,0 +1,74 @@
+"""benchmarks/update_throughput.py: its FLOP counts match the network rows of the estimator's
+docstring (N M H transition, N^2 M H reward, K M (1 + N H) critic ...), and it runs."""
+
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+
+import pytest
+import torch
+from torch import nn
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT / "benchmarks"))
+import update_throughput as bench  # noqa: E402
+
+
+def flops_per_row(module: nn.Module) -> int:
+    """2 x in x out summed over one member's dense layers (Linear or EnsembleLinear)."""
+    total = 0
+    for name, p in module.named_parameters():
+        if name.endswith("weight"):
+            total += 2 * p.shape[-1] * p.shape[-2]
+    return total
+
+
+@pytest.mark.parametrize("N,K,H", [(4, 4, 3), (2, 3, 1), (3, 1, 2)])
+def test_target_flops_equal_the_row_count(N, K, H):
+    M = 16
+    overrides = [
+        f"world_model.num_models={N}",
+        f"network.num_critics={K}",
+        f"estimator.horizon={H}",
+        f"replay_buffer.batch_size={M}",
+    ]
+    step, _, loss = bench.recipe_update("rave", overrides, torch.device("cpu"), target_only=True)
+    estimator = loss.value_estimator
+    wm = estimator.world_model
+    case = bench.Case("rave target", step, bench.batches(M, torch.device("cpu"), count=1))
+    case.count_flops()
+
+    critic = flops_per_row(estimator.value_network)
+    actor = flops_per_row(estimator.actor_network)
+    expected = (
+        (N * M * H + N * M) * flops_per_row(wm.transition)  # rollout + eq. 12 error
+        + N * N * M * H * flops_per_row(wm.reward_model)
+        + N * M * H * flops_per_row(wm.termination)
+        + K * M * (1 + N * H) * critic
+        + M * (1 + N * H) * actor
+    )
+    # the mean and log-variance heads are both evaluated: flops_per_row counts both
+    assert case.flops == expected
+
+
+def test_runs_and_writes_ratios(tmp_path):
+    out = tmp_path / "b.json"
+    result = bench.main(
+        ["--seconds", "0.2", "--paper-batches", "0", "--no-scaling", "--json", str(out)]
+    )
+    saved = json.loads(out.read_text())
+    assert saved["default"]["ratios"] == pytest.approx(result["default"]["ratios"])
+    rows = saved["default"]["rows"]
+    assert set(rows) >= {
+        "plain PyTorch DDPG",
+        "TorchRL DDPGLoss",
+        "ours: rave",
+        "target only: rave",
+    }
+    assert all(r["ms_per_update"] > 0 and r["gflop_per_update"] > 0 for r in rows.values())
+    # the same networks: our DDPG and the plain one do about the same arithmetic
+    assert rows["ours: ddpg"]["gflop_per_update"] == pytest.approx(
+        rows["plain PyTorch DDPG"]["gflop_per_update"], rel=0.15
+    )
