@@ -12,6 +12,7 @@ logging and checkpoints. See recipes/README.md for every key and metric.
 
 from __future__ import annotations
 
+import logging
 import os
 import signal
 import sys
@@ -28,6 +29,7 @@ from omegaconf import DictConfig, OmegaConf
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 from utils import (  # noqa: E402
     Checkpointer,
+    CollectorFailure,
     NonFiniteEnvOutput,
     agent_update,
     check_config,
@@ -159,6 +161,31 @@ def train(cfg: DictConfig, run_dir: str, probe: Probe | None = None) -> dict[str
     def agent_step(step_actor: bool):
         return agent_update(loss, optimizers, updater, rb.sample(), step_actor)
 
+    def guarded(collector):
+        """The collector's batches; a worker that raises or dies stops the run cleanly: the
+        state after the last complete batch is checkpointed and the error names the env."""
+        iterator = iter(collector)
+        while True:
+            try:
+                data = next(iterator)
+            except StopIteration:
+                return
+            except Exception as err:
+                if cfg.collector.backend == "direct":
+                    raise
+                where = save_checkpoint()
+                try:
+                    collector.shutdown()
+                except Exception:  # noqa: BLE001 (a dead worker may fail the shutdown too)
+                    logging.getLogger(__name__).warning("collector shutdown failed", exc_info=True)
+                raise CollectorFailure(
+                    f"a {cfg.collector.backend} collector worker running {cfg.env.name} failed "
+                    f"after frame {counters['frames']}: {type(err).__name__}: {err}. The run "
+                    f"stopped; checkpoint {where} holds everything up to that frame: resume "
+                    f"with resume={run_dir}"
+                ) from err
+            yield data
+
     policy_delay = cfg.td3.policy_delay if algo.loss == "td3" else 1
     start_frames = max(cfg.collector.init_random_frames, cfg.replay_buffer.batch_size)
     if algo.model_based:
@@ -212,7 +239,7 @@ def train(cfg: DictConfig, run_dir: str, probe: Probe | None = None) -> dict[str
         if counters["frames"] < total:
             collector = make_collector(cfg, env, policy, device, counters["frames"])
             t_collect = time.perf_counter()
-            for data in collector:
+            for data in guarded(collector):
                 data = data.reshape(-1)
                 collect_s = time.perf_counter() - t_collect
                 bad = check_finite(data)

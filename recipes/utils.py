@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 import os
 import random
 import shutil
@@ -14,7 +15,7 @@ from omegaconf import DictConfig, OmegaConf
 from tensordict import TensorDictBase
 from tensordict.nn import NormalParamExtractor, TensorDictModule, TensorDictSequential
 from torch import nn
-from torchrl.collectors import Collector
+from torchrl.collectors import Collector, MultiSyncCollector
 from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
 from torchrl.envs import (
     DoubleToFloat,
@@ -69,6 +70,10 @@ WORLD_MODEL_SIZES = ["world_model.num_models"] + [
     for dim in ("cells", "layers")
 ]
 LOGGER_BACKENDS = {"": None, "csv": None, "tensorboard": "tensorboard", "wandb": "wandb"}
+COLLECTOR_BACKENDS = {
+    "direct": "one collector in the learner process",
+    "process": "MultiSyncCollector: num_workers env processes",
+}
 
 
 # --------------------------------------------------------------------------- config checks
@@ -82,7 +87,18 @@ def check_config(cfg: DictConfig) -> Algorithm:
     import gymnasium as gym
 
     _require(cfg.algorithm in ALGORITHMS, "algorithm", cfg.algorithm, f"one of {list(ALGORITHMS)}")
-    if cfg.env.name not in gym.registry:
+    env_id = str(cfg.env.name)
+    if ":" in env_id:  # gymnasium's "module:EnvId": importing the module registers the id
+        import importlib
+
+        module, env_id = env_id.split(":", 1)
+        try:
+            importlib.import_module(module)
+        except ImportError as e:
+            raise ValueError(
+                f"config key env.name={cfg.env.name!r}: cannot import {module!r}: {e}"
+            ) from e
+    if env_id not in gym.registry:
         mujoco = sorted(k for k in gym.registry if k.endswith("-v5"))
         raise ValueError(
             f"config key env.name={cfg.env.name!r} is not a registered gymnasium id; "
@@ -141,6 +157,29 @@ def check_config(cfg: DictConfig) -> Algorithm:
         cfg.network.num_critics,
         "null or an integer >= 1",
     )
+    _require(
+        cfg.collector.backend in COLLECTOR_BACKENDS,
+        "collector.backend",
+        cfg.collector.backend,
+        f"one of {list(COLLECTOR_BACKENDS)}",
+    )
+    workers = cfg.collector.num_workers
+    _require(
+        isinstance(workers, int) and not isinstance(workers, bool) and workers >= 1,
+        "collector.num_workers",
+        workers,
+        "an integer >= 1",
+    )
+    if cfg.collector.backend == "direct":
+        _require(workers == 1, "collector.num_workers", workers,
+                 "1 with collector.backend=direct (use collector.backend=process for more)")  # fmt: skip
+    else:
+        _require(
+            cfg.collector.frames_per_batch % workers == 0,
+            "collector.frames_per_batch",
+            cfg.collector.frames_per_batch,
+            f"a multiple of collector.num_workers ({workers}): each worker collects an equal share",
+        )
     total = cfg.collector.total_frames
     _require(
         cfg.collector.frames_per_batch <= total,
@@ -352,18 +391,43 @@ def agent_update(loss, optimizers: dict, target_updater, batch: TensorDictBase, 
     return out
 
 
-def make_collector(cfg: DictConfig, env, policy, device, frames_done: int = 0) -> Collector:
-    """A collector for the frames still to go (``frames_done`` > 0 when resuming)."""
+def make_collector(cfg: DictConfig, env, policy, device, frames_done: int = 0):
+    """A collector for the frames still to go (``frames_done`` > 0 when resuming).
+
+    ``collector.backend=direct`` steps ``env`` in this process. ``process`` runs
+    ``collector.num_workers`` env processes through TorchRL's ``MultiSyncCollector``: each
+    builds its own env from the config, runs the exploration policy on the CPU and collects
+    ``frames_per_batch / num_workers`` frames per batch; the learner pushes its weights with
+    ``update_policy_weights_()`` after every batch's updates.
+    """
     remaining = cfg.collector.total_frames - frames_done
-    return Collector(
-        env,
-        policy,
+    common = dict(
         frames_per_batch=min(cfg.collector.frames_per_batch, remaining),
         total_frames=remaining,
         init_random_frames=max(0, cfg.collector.init_random_frames - frames_done),
-        device=device,
-        auto_register_policy_transforms=False,  # our policies keep no recurrent state
     )
+    if cfg.collector.backend == "direct":
+        return Collector(
+            env,
+            policy,
+            device=device,
+            auto_register_policy_transforms=False,  # our policies keep no recurrent state
+            **common,
+        )
+    workers = cfg.collector.num_workers
+    common["frames_per_batch"] -= common["frames_per_batch"] % workers
+    cpu = torch.device("cpu")
+    collector = MultiSyncCollector(
+        [functools.partial(make_env, cfg, cpu)] * workers,
+        policy,
+        device=cpu,  # actors run the exploration policy on the CPU
+        storing_device=cpu,
+        cat_results="stack",
+        **common,
+    )
+    # distinct, reproducible streams per worker; a resumed run does not replay old episodes
+    collector.set_seed(cfg.env.seed + frames_done)
+    return collector
 
 
 def make_replay_buffer(cfg: DictConfig, device) -> TensorDictReplayBuffer:
@@ -414,6 +478,10 @@ def critic_mean(loss, td: TensorDictBase) -> torch.Tensor:
         with params[k].to_module(loss.qvalue_network):
             values.append(loss.qvalue_network(td.clone())["state_action_value"].squeeze(-1))
     return torch.stack(values).mean(0)
+
+
+class CollectorFailure(RuntimeError):
+    """A collector worker raised or died; the run stopped with a checkpoint."""
 
 
 class NonFiniteEnvOutput(RuntimeError):
