@@ -1,0 +1,79 @@
+"""Collection throughput (frames/s) of the recipe's collector backends.
+
+    python benchmarks/collection_throughput.py                    # Hopper-v5, 1 2 4 workers
+    python benchmarks/collection_throughput.py --env InvertedPendulum-v5 --workers 1 2
+
+It builds the recipe's env and exploration policy (an untrained RAVE actor with its
+Gaussian noise) from ``recipes/config.yaml`` and times ``collector.backend=direct`` and
+``collector.backend=process`` with each ``--workers`` count: frames/s over ``--batches``
+batches of ``--frames-per-batch`` frames after one warm-up batch (process start-up is
+not counted). No learning happens, so this is the collector's ceiling.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+import torch
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT / "recipes"))
+
+import utils as recipe  # noqa: E402
+from update_throughput import recipe_config  # noqa: E402
+
+
+def measure(env_name: str, backend: str, workers: int, frames_per_batch: int, batches: int):
+    cfg = recipe_config(
+        [
+            f"env.name={env_name}",
+            f"collector.backend={backend}",
+            f"collector.num_workers={workers}",
+            f"collector.frames_per_batch={frames_per_batch}",
+            f"collector.total_frames={frames_per_batch * (batches + 1)}",
+            "collector.init_random_frames=0",
+        ]
+    )
+    algo = recipe.check_config(cfg)
+    env = recipe.make_env(cfg, torch.device("cpu"))
+    _, policy = recipe.make_actor(cfg, env, algo)
+    collector = recipe.make_collector(cfg, env, policy, torch.device("cpu"))
+    try:
+        iterator = iter(collector)
+        next(iterator)  # warm-up: worker start, first resets
+        start, frames = time.perf_counter(), 0
+        for data in iterator:
+            frames += data.numel()
+            collector.update_policy_weights_()  # as the training loop does every batch
+        return frames / (time.perf_counter() - start)
+    finally:
+        collector.shutdown()
+
+
+def main(argv=None) -> dict:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--env", default="Hopper-v5")
+    parser.add_argument("--workers", nargs="+", type=int, default=[1, 2, 4])
+    parser.add_argument("--frames-per-batch", type=int, default=1000)
+    parser.add_argument("--batches", type=int, default=5)
+    parser.add_argument("--json", default=str(ROOT / "benchmarks" / "collection_throughput.json"))
+    args = parser.parse_args(argv)
+    torch.set_num_threads(1)  # the learner's share; workers are single-threaded processes
+    rows = {"direct": measure(args.env, "direct", 1, args.frames_per_batch, args.batches)}
+    for n in args.workers:
+        rows[f"process x{n}"] = measure(
+            args.env, "process", n, args.frames_per_batch - args.frames_per_batch % n, args.batches
+        )
+    print(f"{args.env}: frames/s over {args.batches} batches of {args.frames_per_batch}")
+    for name, fps in rows.items():
+        print(f"  {name:<12}{fps:9.0f}   x{fps / rows['direct']:.2f} vs direct")
+    Path(args.json).write_text(json.dumps({"env": args.env, "frames_per_s": rows}, indent=2))
+    return rows
+
+
+if __name__ == "__main__":
+    main()
