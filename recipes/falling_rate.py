@@ -28,7 +28,7 @@ import numpy as np
 import torch
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-from plot_curves import parse_groups, read_metric  # noqa: E402
+from plot_curves import band_plot, parse_groups, read_metric  # noqa: E402
 
 Z95 = 1.959963984540054  # the standard normal's 97.5 % quantile
 
@@ -81,27 +81,20 @@ def logged_falls(
 
 
 def plot(over_training: dict, out: Path, title: str | None) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, ax = plt.subplots(figsize=(7, 4.5))
+    series = {}
     for label, (steps, falls, episodes) in over_training.items():
-        rate = falls / episodes
         bounds = [wilson_interval(int(k), int(n)) for k, n in zip(falls, episodes, strict=True)]
-        lo, hi = [b[0] for b in bounds], [b[1] for b in bounds]
-        (line,) = ax.plot(steps, rate, marker="o", markersize=3, label=f"{label}")
-        ax.fill_between(steps, lo, hi, alpha=0.2, color=line.get_color())
-    ax.set_xlabel("environment steps")
-    ax.set_ylabel("falling rate (episodes that terminate)")
-    ax.set_ylim(-0.02, 1.02)
-    ax.set_title(title or "Falling rate over training (band: 95% Wilson interval)")
-    ax.legend()
-    ax.grid(alpha=0.3)
-    fig.tight_layout()
-    fig.savefig(out, dpi=120)
-    plt.close(fig)
+        low, high = [b[0] for b in bounds], [b[1] for b in bounds]
+        series[label] = (steps, falls / episodes, low, high)
+    band_plot(
+        series,
+        out,
+        xlabel="environment steps",
+        ylabel="falling rate (episodes that terminate)",
+        title=title or "Falling rate over training (band: 95% Wilson interval)",
+        ylim=(-0.02, 1.02),
+        marker="o",
+    )
 
 
 def main(argv: list[str] | None = None) -> str:

@@ -79,19 +79,30 @@ def table(data: dict, at: list[int], metric: str) -> str:
     return "\n".join(lines)
 
 
-def plot(data: dict, metric: str, out: Path, title: str | None = None) -> None:
+def band_plot(
+    series: dict[str, tuple],
+    out: Path,
+    *,
+    xlabel: str,
+    ylabel: str,
+    title: str | None = None,
+    ylim: tuple[float, float] | None = None,
+    marker: str | None = None,
+) -> None:
+    """One line with a shaded band per label: ``series[label] = (x, centre, low, high)``."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, ax = plt.subplots(figsize=(6, 4))
-    for label, (steps, values) in data.items():
-        mean, std = values.mean(0), values.std(0)
-        (line,) = ax.plot(steps, mean, label=f"{label} ({values.shape[0]} seeds)")
-        ax.fill_between(steps, mean - std, mean + std, color=line.get_color(), alpha=0.2)
-    ax.set_xlabel("environment frames")
-    ax.set_ylabel(metric)
+    fig, ax = plt.subplots(figsize=(7, 4.5))
+    for label, (x, centre, low, high) in series.items():
+        (line,) = ax.plot(x, centre, label=label, marker=marker, markersize=3)
+        ax.fill_between(x, low, high, color=line.get_color(), alpha=0.2)
+    ax.set_xlabel(xlabel)
+    ax.set_ylabel(ylabel)
+    if ylim is not None:
+        ax.set_ylim(*ylim)
     if title:
         ax.set_title(title)
     ax.legend()
@@ -99,6 +110,15 @@ def plot(data: dict, metric: str, out: Path, title: str | None = None) -> None:
     fig.tight_layout()
     fig.savefig(out, dpi=120)
     plt.close(fig)
+
+
+def plot(data: dict, metric: str, out: Path, title: str | None = None) -> None:
+    """Mean over seeds with a ± one-std band."""
+    series = {}
+    for label, (steps, values) in data.items():
+        mean, std = values.mean(0), values.std(0)
+        series[f"{label} ({values.shape[0]} seeds)"] = (steps, mean, mean - std, mean + std)
+    band_plot(series, out, xlabel="environment frames", ylabel=metric, title=title)
 
 
 def main(argv: list[str] | None = None) -> str:
