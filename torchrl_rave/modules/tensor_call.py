@@ -83,6 +83,13 @@ def _stacked_linear(x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor | 
     return torch.baddbmm(bias.unsqueeze(-2), x, wt)
 
 
+def _shared_state(params: TensorDictBase, prefix: tuple[str, ...]) -> TensorDictBase:
+    """The sub-module's entries of ``params``; with stacked parameters, member 0's (only
+    parameter-free modules are planned then, and their buffers are the same for all)."""
+    sub = params.get(prefix) if prefix else params
+    return sub[(0,) * sub.batch_dims] if sub.batch_dims else sub
+
+
 class TensorCall:
     """A planned, TensorDict-free call of a TensorDict module.
 
@@ -178,9 +185,7 @@ class TensorCall:
                 if params is None:
                     low, high = getattr(module, low_name), getattr(module, high_name)
                 else:
-                    sub = params.get(prefix) if prefix else params
-                    if sub.batch_dims:  # bounds shared by all members
-                        sub = sub[(0,) * sub.batch_dims]
+                    sub = _shared_state(params, prefix)
                     low, high = sub.get(low_name), sub.get(high_name)
                 x = values[in_key].tanh()
                 if clamp:
@@ -192,11 +197,9 @@ class TensorCall:
                 batch = next(iter(values.values())).shape[:-1]
                 td = TensorDict({k: values[k] for k in module.in_keys if k in values}, batch)
                 if prefix is not None and params is not None:
-                    sub = params.get(prefix) if prefix else params
-                    # buffers shared by all members (e.g. TanhModule's bounds) are read as one
-                    if sub.batch_dims:
-                        sub = sub[(0,) * sub.batch_dims]
-                    with sub.to_module(module, preserve_module_state=False):
+                    with _shared_state(params, prefix).to_module(
+                        module, preserve_module_state=False
+                    ):
                         td = module(td)
                 else:
                     td = module(td)
