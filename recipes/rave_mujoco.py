@@ -47,6 +47,7 @@ from utils import (  # noqa: E402
     make_replay_buffer,
     make_world_model,
     make_world_model_loss,
+    push_policy_weights,
     replay_buffer_size,
     rng_state,
     saved_config,
@@ -238,6 +239,7 @@ def train(cfg: DictConfig, run_dir: str, probe: Probe | None = None) -> dict[str
     with _StopRequest() as stop:
         if counters["frames"] < total:
             collector = make_collector(cfg, env, policy, device, counters["frames"])
+            synced_at = counters["updates"]  # the workers start with the current weights
             t_collect = time.perf_counter()
             for data in guarded(collector):
                 data = data.reshape(-1)
@@ -260,7 +262,9 @@ def train(cfg: DictConfig, run_dir: str, probe: Probe | None = None) -> dict[str
                 t_update = time.perf_counter()
                 acc = train_on_batch(data.numel())
                 update_s = time.perf_counter() - t_update
-                collector.update_policy_weights_()
+                if counters["updates"] - synced_at >= cfg.collector.weight_sync_every:
+                    push_policy_weights(collector, policy)
+                    synced_at = counters["updates"]
 
                 metrics = {k: torch.stack(v).mean().item() for k, v in acc.items()}
                 done = data["next", "done"].squeeze(-1)

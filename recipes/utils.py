@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 import torch
 from omegaconf import DictConfig, OmegaConf
-from tensordict import TensorDictBase
+from tensordict import TensorDict, TensorDictBase
 from tensordict.nn import NormalParamExtractor, TensorDictModule, TensorDictSequential
 from torch import nn
 from torchrl.collectors import Collector, MultiSyncCollector
@@ -73,6 +73,7 @@ LOGGER_BACKENDS = {"": None, "csv": None, "tensorboard": "tensorboard", "wandb":
 COLLECTOR_BACKENDS = {
     "direct": "one collector in the learner process",
     "process": "MultiSyncCollector: num_workers env processes",
+    "ray": "RayCollector: num_workers Ray actors, on this machine or a cluster (ray.address)",
 }
 
 
@@ -170,9 +171,15 @@ def check_config(cfg: DictConfig) -> Algorithm:
         workers,
         "an integer >= 1",
     )
+    _require(
+        isinstance(cfg.collector.weight_sync_every, int) and cfg.collector.weight_sync_every >= 1,
+        "collector.weight_sync_every",
+        cfg.collector.weight_sync_every,
+        "an integer >= 1 (updates between two weight pushes)",
+    )
     if cfg.collector.backend == "direct":
         _require(workers == 1, "collector.num_workers", workers,
-                 "1 with collector.backend=direct (use collector.backend=process for more)")  # fmt: skip
+                 "1 with collector.backend=direct (use collector.backend=process or ray for more)")  # fmt: skip
     else:
         _require(
             cfg.collector.frames_per_batch % workers == 0,
@@ -180,6 +187,8 @@ def check_config(cfg: DictConfig) -> Algorithm:
             cfg.collector.frames_per_batch,
             f"a multiple of collector.num_workers ({workers}): each worker collects an equal share",
         )
+    if cfg.collector.backend == "ray":
+        check_ray_config(cfg)
     total = cfg.collector.total_frames
     _require(
         cfg.collector.frames_per_batch <= total,
@@ -218,6 +227,29 @@ def check_config(cfg: DictConfig) -> Algorithm:
                 f"config key collector.device={cfg.collector.device!r}: {err}"
             ) from err
     return ALGORITHMS[cfg.algorithm]
+
+
+def check_ray_config(cfg: DictConfig) -> None:
+    """The ``ray.*`` keys, and Ray itself, checked before anything starts."""
+    import importlib.util
+
+    if importlib.util.find_spec("ray") is None:
+        raise ValueError(
+            "config key collector.backend='ray' needs the 'ray' package: "
+            "pip install 'torchrl-rave[ray]' (or pip install ray)"
+        )
+    r = cfg.ray
+    _require(r.address is None or isinstance(r.address, str), "ray.address", r.address,
+             "null (a local instance), 'auto' or a cluster address")  # fmt: skip
+    _require(r.num_cpus is None or (isinstance(r.num_cpus, int) and r.num_cpus >= 1),
+             "ray.num_cpus", r.num_cpus, "null or an integer >= 1")  # fmt: skip
+    _require(isinstance(r.worker_cpus, (int, float)) and r.worker_cpus > 0,
+             "ray.worker_cpus", r.worker_cpus, "a number > 0")  # fmt: skip
+    _require(r.worker_memory is None or (isinstance(r.worker_memory, int) and r.worker_memory > 0),
+             "ray.worker_memory", r.worker_memory, "null or a number of bytes > 0")  # fmt: skip
+    resources = r.worker_resources or {}
+    _require(all(isinstance(v, (int, float)) and v > 0 for v in resources.values()),
+             "ray.worker_resources", resources, "a mapping of resource name to an amount > 0")  # fmt: skip
 
 
 def replay_buffer_size(cfg: DictConfig) -> int:
@@ -395,10 +427,12 @@ def make_collector(cfg: DictConfig, env, policy, device, frames_done: int = 0):
     """A collector for the frames still to go (``frames_done`` > 0 when resuming).
 
     ``collector.backend=direct`` steps ``env`` in this process. ``process`` runs
-    ``collector.num_workers`` env processes through TorchRL's ``MultiSyncCollector``: each
-    builds its own env from the config, runs the exploration policy on the CPU and collects
-    ``frames_per_batch / num_workers`` frames per batch; the learner pushes its weights with
-    ``update_policy_weights_()`` after every batch's updates.
+    ``collector.num_workers`` env processes through TorchRL's ``MultiSyncCollector``, and
+    ``ray`` as many Ray actors through TorchRL's ``RayCollector`` (see
+    :func:`make_ray_collector`). Workers build their own env from the config, run the
+    exploration policy on the CPU and collect ``frames_per_batch / num_workers`` frames per
+    batch; the batch holds every worker's share, so the learner's update-to-data ratio is
+    exact. :func:`push_policy_weights` sends the learner's weights to the workers.
     """
     remaining = cfg.collector.total_frames - frames_done
     common = dict(
@@ -417,17 +451,95 @@ def make_collector(cfg: DictConfig, env, policy, device, frames_done: int = 0):
     workers = cfg.collector.num_workers
     common["frames_per_batch"] -= common["frames_per_batch"] % workers
     cpu = torch.device("cpu")
-    collector = MultiSyncCollector(
-        [functools.partial(make_env, cfg, cpu)] * workers,
-        policy,
-        device=cpu,  # actors run the exploration policy on the CPU
-        storing_device=cpu,
-        cat_results="stack",
-        **common,
-    )
+    if cfg.collector.backend == "ray":
+        collector = make_ray_collector(cfg, common)
+    else:
+        collector = MultiSyncCollector(
+            [functools.partial(make_env, cfg, cpu)] * workers,
+            policy,
+            device=cpu,  # actors run the exploration policy on the CPU
+            storing_device=cpu,
+            cat_results="stack",
+            **common,
+        )
     # distinct, reproducible streams per worker; a resumed run does not replay old episodes
     collector.set_seed(cfg.env.seed + frames_done)
+    push_policy_weights(collector, policy)
     return collector
+
+
+def worker_policy(cfg: DictConfig):
+    """The exploration policy of a Ray collector worker, built on its CPU from the config;
+    its weights come from the learner (:func:`push_policy_weights`)."""
+    torch.set_num_threads(max(1, int(cfg.ray.worker_cpus)))
+    env = make_env(cfg, torch.device("cpu"))
+    try:
+        return make_actor(cfg, env, ALGORITHMS[cfg.algorithm])[1]
+    finally:
+        env.close()
+
+
+class RayWorkerCollector(Collector):
+    """TorchRL's ``Collector`` with a one-line repr: Ray prefixes every line a worker logs
+    with its actor's repr, which for a ``Collector`` spans the whole env and policy."""
+
+    def __repr__(self) -> str:
+        return f"{type(self).__name__}(worker={getattr(self, 'worker_idx', '?')})"
+
+
+def make_ray_collector(cfg: DictConfig, common: dict):
+    """TorchRL's ``RayCollector``: ``collector.num_workers`` Ray actors, each a CPU
+    ``Collector`` with its own env and exploration policy, collecting in lockstep.
+
+    With Ray not yet started in this process, ``ray.address=null`` starts a local instance
+    (``ray.num_cpus`` CPUs) and ``auto`` or a cluster address joins one. Each actor reserves
+    ``ray.worker_cpus`` CPUs, ``ray.worker_memory`` bytes and ``ray.worker_resources``.
+    Weights travel by TorchRL's Ray weight-sync scheme. Every node needs torchrl-rave and
+    the env's packages installed; this module's factories travel with the actors by value.
+    """
+    import sys
+    import warnings
+
+    import ray.cloudpickle
+    from torchrl.collectors.distributed import RayCollector
+
+    # the env and policy factories live in this recipe module, which Ray workers cannot
+    # import by name: pickle them by value
+    ray.cloudpickle.register_pickle_by_value(sys.modules[__name__])
+    r = cfg.ray
+    if r.address is None:
+        ray_init = {"num_cpus": r.num_cpus, "include_dashboard": False}
+    else:
+        ray_init = {"address": r.address}
+    remote = {"num_cpus": r.worker_cpus, "num_gpus": 0}  # actors explore on the CPU
+    if r.worker_memory is not None:
+        remote["memory"] = r.worker_memory
+    if r.worker_resources:
+        remote["resources"] = dict(r.worker_resources)
+    cpu = torch.device("cpu")
+    with warnings.catch_warnings():
+        # the policy comes from a factory; its weights are pushed explicitly
+        warnings.filterwarnings("ignore", message="The policy is not an nn.Module")
+        return RayCollector(
+            [functools.partial(make_env, cfg, cpu)] * cfg.collector.num_workers,
+            policy_factory=functools.partial(worker_policy, cfg),
+            collector_class=RayWorkerCollector,
+            sync=True,  # one share from every worker per batch
+            device=cpu,
+            storing_device=cpu,
+            ray_init_config=ray_init,
+            remote_configs=remote,
+            collector_kwargs={"auto_register_policy_transforms": False},
+            **common,
+        )
+
+
+def push_policy_weights(collector, policy) -> None:
+    """Sends ``policy``'s current weights to every collector worker (TorchRL's weight-sync
+    schemes; a no-op for the direct backend, which runs ``policy`` itself)."""
+    if isinstance(collector, Collector):
+        return
+    collector.update_policy_weights_(TensorDict.from_module(policy).data)
 
 
 def make_replay_buffer(cfg: DictConfig, device) -> TensorDictReplayBuffer:

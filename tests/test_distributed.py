@@ -1,9 +1,12 @@
-"""Parallel collection: the process backend (TorchRL's MultiSyncCollector) delivers frames
-from every worker, pushes the learner's weights to each, trains end to end, and a failing
-worker stops the run with a checkpoint."""
+"""Parallel collection through TorchRL's collectors, on both worker backends: ``process``
+(``MultiSyncCollector``) and ``ray`` (``RayCollector`` on a local Ray instance that this
+module starts). Each delivers frames from every worker, pushes the learner's weights to
+each, trains RAVE end to end, and a worker that raises or dies stops the run with a
+checkpoint."""
 
 from __future__ import annotations
 
+import os
 import sys
 from pathlib import Path
 
@@ -16,37 +19,73 @@ import rave_mujoco  # noqa: E402
 import utils as recipe_utils  # noqa: E402
 from test_recipe import TINY, make_cfg  # noqa: E402
 
-PROCESS = ["collector.backend=process", "collector.num_workers=2"]
+TESTS = Path(__file__).resolve().parent
 
 
-def test_frames_from_every_worker_and_weight_push():
-    cfg = make_cfg(*TINY, *PROCESS, "algorithm=rave")
+@pytest.fixture(scope="module")
+def local_ray():
+    """A small local Ray instance shared by this module's Ray tests. Its workers find the
+    test envs (``failing_env``) on PYTHONPATH."""
+    import ray
+
+    path = os.pathsep.join(p for p in (str(TESTS), os.environ.get("PYTHONPATH")) if p)
+    ray.init(
+        num_cpus=2,
+        include_dashboard=False,
+        runtime_env={"env_vars": {"PYTHONPATH": path, "OMP_NUM_THREADS": "1"}},
+    )
+    yield ray
+    ray.shutdown()
+
+
+@pytest.fixture(params=["process", "ray"])
+def backend(request):
+    """The config overrides for two workers on each backend."""
+    if request.param == "ray":
+        request.getfixturevalue("local_ray")
+    return [f"collector.backend={request.param}", "collector.num_workers=2"]
+
+
+def test_frames_from_every_worker_and_weight_push(backend):
+    cfg = make_cfg(*TINY, *backend, "algorithm=rave")
     algo = recipe_utils.check_config(cfg)
     env = recipe_utils.make_env(cfg, torch.device("cpu"))
     _, policy = recipe_utils.make_actor(cfg, env, algo)
     collector = recipe_utils.make_collector(cfg, env, policy, torch.device("cpu"))
+
+    def assert_workers_hold(weights: TensorDict) -> None:
+        remotes = collector.get_distant_attr("policy")
+        assert len(remotes) == 2
+        for remote in remotes:
+            theirs = TensorDict.from_module(remote)
+            assert set(theirs.keys(True, True)) == set(weights.keys(True, True))
+            for key in weights.keys(True, True):
+                assert torch.equal(theirs[key], weights[key]), key
+
     try:
+        # the workers start with the learner's weights (Ray workers build their own policy)
+        assert_workers_hold(TensorDict.from_module(policy).clone())
         data = next(iter(collector))
         # stacked per worker: [workers, frames per worker]
         assert data.batch_size == (2, 50)
         first, second = data[0]["observation"], data[1]["observation"]
         assert torch.isfinite(data["observation"]).all()
         assert not torch.equal(first, second)  # two workers, two seeds, two streams
+        before = TensorDict.from_module(policy).clone()
         with torch.no_grad():
             for p in policy.parameters():
                 p.add_(torch.randn_like(p))
-        collector.update_policy_weights_()
-        learner = TensorDict.from_module(policy)
-        for remote in collector.get_distant_attr("policy"):
-            theirs = TensorDict.from_module(remote)
-            for key in learner.keys(True, True):
-                assert torch.equal(theirs[key], learner[key]), key
+        after = TensorDict.from_module(policy).clone()
+        assert not torch.equal(before["module", "0", "module", "0", "module", "0", "weight"],
+                               after["module", "0", "module", "0", "module", "0", "weight"])  # fmt: skip
+        recipe_utils.push_policy_weights(collector, policy)
+        assert_workers_hold(after)
     finally:
         collector.shutdown()
 
 
-def test_rave_trains_with_two_process_workers(tmp_path):
-    cfg = make_cfg(*TINY, *PROCESS, "algorithm=rave")
+def test_rave_trains_with_two_workers(backend, tmp_path):
+    cfg = make_cfg(*TINY, *backend, "algorithm=rave", "logger.backend=csv")
     result = rave_mujoco.train(cfg, str(tmp_path))
     assert result["frames"] == 400
     # utd 0.1 per frame collected after the 200-frame start: 20 updates
@@ -54,25 +93,63 @@ def test_rave_trains_with_two_process_workers(tmp_path):
     assert result["eval/episode_length"] >= 1
 
 
-def test_bad_worker_settings_are_refused():
-    with pytest.raises(ValueError, match="collector.num_workers.*backend=process"):
-        recipe_utils.check_config(make_cfg(*TINY, "collector.num_workers=2"))
-    with pytest.raises(ValueError, match="frames_per_batch.*multiple of collector.num_workers"):
-        recipe_utils.check_config(make_cfg(*TINY, *PROCESS[:1], "collector.num_workers=3"))
-    with pytest.raises(ValueError, match="collector.backend"):
-        recipe_utils.check_config(make_cfg(*TINY, "collector.backend=threads"))
-
-
-def test_failing_worker_stops_with_a_checkpoint(tmp_path):
-    cfg = make_cfg(*TINY, *PROCESS, "algorithm=ddpg", "env.name=failing_env:FailingPendulum-v0")
+@pytest.mark.parametrize("env_id", ["FailingPendulum-v0", "DyingPendulum-v0"])
+def test_failing_worker_stops_with_a_checkpoint(backend, env_id, tmp_path):
+    cfg = make_cfg(*TINY, *backend, "algorithm=ddpg", f"env.name=failing_env:{env_id}")
     with pytest.raises(
-        recipe_utils.CollectorFailure,
-        match=r"FailingPendulum-v0 failed after frame 200: .*worker 0",
-    ):
+        recipe_utils.CollectorFailure, match=rf"{env_id} failed after frame 200: "
+    ) as failure:
         rave_mujoco.train(cfg, str(tmp_path))
+    cause = str(failure.value.__cause__)
+    if backend[0].endswith("process"):
+        # TorchRL names the failed worker; the worker's traceback goes to stderr
+        assert "worker 0" in cause
+    elif env_id == "FailingPendulum-v0":  # Ray carries the worker's traceback to the learner
+        assert "simulated simulator crash at step 150" in cause
+    else:
+        assert "actor died" in cause
     state = torch.load(
         recipe_utils.Checkpointer(tmp_path).latest() / "state.pt", weights_only=False
     )
-    # each worker collects 50 frames per batch and crashes on its 150th step: two whole
+    # each worker collects 50 frames per batch and fails on its 150th step: two whole
     # batches made it into the buffer and the checkpoint
     assert state["counters"]["frames"] == 200
+    # DDPG updates start after init_random_frames (100): utd 0.1 x 100 frames
+    assert state["counters"]["updates"] == 10
+
+
+def test_bad_worker_settings_are_refused():
+    with pytest.raises(ValueError, match="collector.num_workers.*backend=process or ray"):
+        recipe_utils.check_config(make_cfg(*TINY, "collector.num_workers=2"))
+    with pytest.raises(ValueError, match="frames_per_batch.*multiple of collector.num_workers"):
+        recipe_utils.check_config(
+            make_cfg(*TINY, "collector.backend=ray", "collector.num_workers=3")
+        )
+    with pytest.raises(ValueError, match="collector.backend"):
+        recipe_utils.check_config(make_cfg(*TINY, "collector.backend=threads"))
+    with pytest.raises(ValueError, match="collector.weight_sync_every"):
+        recipe_utils.check_config(make_cfg(*TINY, "collector.weight_sync_every=0"))
+    ray = ["collector.backend=ray", "collector.num_workers=2"]
+    for override, key in [
+        ("ray.worker_cpus=0", "ray.worker_cpus"),
+        ("ray.num_cpus=0", "ray.num_cpus"),
+        ("ray.worker_memory=-1", "ray.worker_memory"),
+        ("+ray.worker_resources.actors=0", "ray.worker_resources"),
+    ]:
+        with pytest.raises(ValueError, match=rf"config key {key}="):
+            recipe_utils.check_config(make_cfg(*TINY, *ray, override))
+
+
+def test_ray_backend_without_ray_names_the_fix(monkeypatch):
+    import importlib.util
+
+    real = importlib.util.find_spec
+    monkeypatch.setattr(
+        importlib.util, "find_spec", lambda name, *a: None if name == "ray" else real(name, *a)
+    )
+    with pytest.raises(
+        ValueError, match=r"needs the 'ray' package: pip install 'torchrl-rave\[ray\]'"
+    ):
+        recipe_utils.check_config(
+            make_cfg(*TINY, "collector.backend=ray", "collector.num_workers=2")
+        )
