@@ -2,18 +2,23 @@
 
     python benchmarks/collection_throughput.py                    # Hopper-v5, 1 2 4 workers
     python benchmarks/collection_throughput.py --env InvertedPendulum-v5 --workers 1 2
+    python benchmarks/collection_throughput.py --backends process     # without Ray
 
 It builds the recipe's env and exploration policy (an untrained RAVE actor with its
-Gaussian noise) from ``recipes/config.yaml`` and times ``collector.backend=direct`` and
-``collector.backend=process`` with each ``--workers`` count: frames/s over ``--batches``
-batches of ``--frames-per-batch`` frames after one warm-up batch (process start-up is
-not counted). No learning happens, so this is the collector's ceiling.
+Gaussian noise) from ``recipes/config.yaml`` and times ``collector.backend=direct``, then
+each of ``--backends`` (``process``, ``ray``) with each ``--workers`` count: frames/s over
+``--batches`` batches of ``--frames-per-batch`` frames after one warm-up batch (worker
+start-up is not counted), with a weight push after every batch as in training. Ray runs
+a fresh local instance per row, with as many CPUs as workers. No learning happens, so this
+is the collector's ceiling.
 """
 
 from __future__ import annotations
 
 import argparse
+import importlib.util
 import json
+import os
 import sys
 import time
 from pathlib import Path
@@ -36,6 +41,7 @@ def measure(env_name: str, backend: str, workers: int, frames_per_batch: int, ba
             f"collector.frames_per_batch={frames_per_batch}",
             f"collector.total_frames={frames_per_batch * (batches + 1)}",
             "collector.init_random_frames=0",
+            f"ray.num_cpus={max(workers, os.cpu_count() or 1)}",
         ]
     )
     algo = recipe.check_config(cfg)
@@ -48,7 +54,7 @@ def measure(env_name: str, backend: str, workers: int, frames_per_batch: int, ba
         start, frames = time.perf_counter(), 0
         for data in iterator:
             frames += data.numel()
-            collector.update_policy_weights_()  # as the training loop does every batch
+            recipe.push_policy_weights(collector, policy)  # as the training loop does
         return frames / (time.perf_counter() - start)
     finally:
         collector.shutdown()
@@ -58,16 +64,27 @@ def main(argv=None) -> dict:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--env", default="Hopper-v5")
     parser.add_argument("--workers", nargs="+", type=int, default=[1, 2, 4])
+    parser.add_argument(
+        "--backends",
+        nargs="+",
+        choices=["process", "ray"],
+        default=["process", "ray"] if importlib.util.find_spec("ray") else ["process"],
+    )
     parser.add_argument("--frames-per-batch", type=int, default=1000)
     parser.add_argument("--batches", type=int, default=5)
     parser.add_argument("--json", default=str(ROOT / "benchmarks" / "collection_throughput.json"))
     args = parser.parse_args(argv)
     torch.set_num_threads(1)  # the learner's share; workers are single-threaded processes
     rows = {"direct": measure(args.env, "direct", 1, args.frames_per_batch, args.batches)}
-    for n in args.workers:
-        rows[f"process x{n}"] = measure(
-            args.env, "process", n, args.frames_per_batch - args.frames_per_batch % n, args.batches
-        )
+    for backend in args.backends:
+        for n in args.workers:
+            rows[f"{backend} x{n}"] = measure(
+                args.env,
+                backend,
+                n,
+                args.frames_per_batch - args.frames_per_batch % n,
+                args.batches,
+            )
     print(f"{args.env}: frames/s over {args.batches} batches of {args.frames_per_batch}")
     for name, fps in rows.items():
         print(f"  {name:<12}{fps:9.0f}   x{fps / rows['direct']:.2f} vs direct")

@@ -250,6 +250,17 @@ def check_ray_config(cfg: DictConfig) -> None:
     resources = r.worker_resources or {}
     _require(all(isinstance(v, (int, float)) and v > 0 for v in resources.values()),
              "ray.worker_resources", resources, "a mapping of resource name to an amount > 0")  # fmt: skip
+    if r.address is None:  # a local instance: its workers must fit, or they wait forever
+        import ray
+
+        if ray.is_initialized():
+            cpus, where = ray.cluster_resources().get("CPU", 0), "the running Ray instance's"
+        else:
+            cpus, where = r.num_cpus or os.cpu_count(), "the local Ray instance's (ray.num_cpus)"
+        need = cfg.collector.num_workers * r.worker_cpus
+        _require(need <= cpus, "ray.worker_cpus", r.worker_cpus,
+                 f"collector.num_workers x ray.worker_cpus = {need} <= {where} {cpus:g} CPUs; "
+                 f"lower ray.worker_cpus (fractions are fine) or raise ray.num_cpus")  # fmt: skip
 
 
 def replay_buffer_size(cfg: DictConfig) -> int:

@@ -138,6 +138,11 @@ def test_bad_worker_settings_are_refused():
     ]:
         with pytest.raises(ValueError, match=rf"config key {key}="):
             recipe_utils.check_config(make_cfg(*TINY, *ray, override))
+    # more workers than a local instance has CPUs would wait forever
+    too_many = ["collector.backend=ray", "collector.num_workers=4", "ray.num_cpus=2"]
+    with pytest.raises(ValueError, match=r"num_workers x ray.worker_cpus = 4 <= .* 2 CPUs"):
+        recipe_utils.check_config(make_cfg(*TINY, *too_many))
+    recipe_utils.check_config(make_cfg(*TINY, *too_many, "ray.worker_cpus=0.5"))  # fits
 
 
 def test_ray_backend_without_ray_names_the_fix(monkeypatch):
