@@ -250,17 +250,35 @@ def check_ray_config(cfg: DictConfig) -> None:
     resources = r.worker_resources or {}
     _require(all(isinstance(v, (int, float)) and v > 0 for v in resources.values()),
              "ray.worker_resources", resources, "a mapping of resource name to an amount > 0")  # fmt: skip
-    if r.address is None:  # a local instance: its workers must fit, or they wait forever
-        import ray
+    import ray
 
-        if ray.is_initialized():
-            cpus, where = ray.cluster_resources().get("CPU", 0), "the running Ray instance's"
-        else:
-            cpus, where = r.num_cpus or os.cpu_count(), "the local Ray instance's (ray.num_cpus)"
-        need = cfg.collector.num_workers * r.worker_cpus
-        _require(need <= cpus, "ray.worker_cpus", r.worker_cpus,
-                 f"collector.num_workers x ray.worker_cpus = {need} <= {where} {cpus:g} CPUs; "
-                 f"lower ray.worker_cpus (fractions are fine) or raise ray.num_cpus")  # fmt: skip
+    if ray.is_initialized():
+        check_ray_fits(cfg, ray.cluster_resources(), "the running Ray instance")
+    elif r.address is None:
+        local = {"CPU": r.num_cpus or os.cpu_count(), "memory": float("inf")}
+        check_ray_fits(cfg, local, "a local Ray instance (ray.num_cpus)")
+    # a cluster (ray.address) is checked by make_ray_collector once connected
+
+
+def check_ray_fits(cfg: DictConfig, total: dict, where: str) -> None:
+    """Refuses collector actors that Ray resources ``total`` cannot hold all at once: the
+    ones left over would wait for resources forever, and the run with them."""
+    workers, r = cfg.collector.num_workers, cfg.ray
+    needs = [("CPU", "ray.worker_cpus", r.worker_cpus)]
+    if r.worker_memory is not None:
+        needs.append(("memory", "ray.worker_memory", r.worker_memory))
+    needs += [
+        (name, f"ray.worker_resources.{name}", n) for name, n in (r.worker_resources or {}).items()
+    ]
+    for name, key, amount in needs:
+        have = total.get(name, 0)
+        _require(
+            workers * amount <= have,
+            key,
+            amount,
+            f"collector.num_workers x {amount:g} = {workers * amount:g} {name} <= the {have:g} "
+            f"{name} of {where}; lower it (fractions are fine), use fewer workers or add nodes",
+        )
 
 
 def replay_buffer_size(cfg: DictConfig) -> int:
@@ -511,6 +529,7 @@ def make_ray_collector(cfg: DictConfig, common: dict):
     import sys
     import warnings
 
+    import ray
     import ray.cloudpickle
     from torchrl.collectors.distributed import RayCollector
 
@@ -518,10 +537,12 @@ def make_ray_collector(cfg: DictConfig, common: dict):
     # import by name: pickle them by value
     ray.cloudpickle.register_pickle_by_value(sys.modules[__name__])
     r = cfg.ray
-    if r.address is None:
-        ray_init = {"num_cpus": r.num_cpus, "include_dashboard": False}
-    else:
-        ray_init = {"address": r.address}
+    ray_init = {"num_cpus": r.num_cpus, "include_dashboard": False}
+    if r.address is not None and not ray.is_initialized():
+        # join the cluster here (a driver connection, dropped when this process exits) so
+        # that its resources are checked before any actor waits for them
+        ray.init(address=r.address)
+        check_ray_fits(cfg, ray.cluster_resources(), f"the Ray cluster at {r.address}")
     remote = {"num_cpus": r.worker_cpus, "num_gpus": 0}  # actors explore on the CPU
     if r.worker_memory is not None:
         remote["memory"] = r.worker_memory

@@ -134,15 +134,18 @@ def test_bad_worker_settings_are_refused():
         ("ray.worker_cpus=0", "ray.worker_cpus"),
         ("ray.num_cpus=0", "ray.num_cpus"),
         ("ray.worker_memory=-1", "ray.worker_memory"),
-        ("+ray.worker_resources.actors=0", "ray.worker_resources"),
+        ("ray.worker_resources={actors:0}", "ray.worker_resources"),
     ]:
         with pytest.raises(ValueError, match=rf"config key {key}="):
             recipe_utils.check_config(make_cfg(*TINY, *ray, override))
     # more workers than a local instance has CPUs would wait forever
     too_many = ["collector.backend=ray", "collector.num_workers=4", "ray.num_cpus=2"]
-    with pytest.raises(ValueError, match=r"num_workers x ray.worker_cpus = 4 <= .* 2 CPUs"):
+    with pytest.raises(ValueError, match=r"ray.worker_cpus=1 .* = 4 CPU <= the 2 CPU of"):
         recipe_utils.check_config(make_cfg(*TINY, *too_many))
     recipe_utils.check_config(make_cfg(*TINY, *too_many, "ray.worker_cpus=0.5"))  # fits
+    # a resource no node has
+    with pytest.raises(ValueError, match=r"ray.worker_resources.* = 2 actors <= the 0 actors"):
+        recipe_utils.check_config(make_cfg(*TINY, *ray, "ray.worker_resources={actors:1}"))
 
 
 def test_ray_backend_without_ray_names_the_fix(monkeypatch):
