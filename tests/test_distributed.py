@@ -161,3 +161,28 @@ def test_ray_backend_without_ray_names_the_fix(monkeypatch):
         recipe_utils.check_config(
             make_cfg(*TINY, "collector.backend=ray", "collector.num_workers=2")
         )
+
+
+@pytest.mark.parametrize(("every", "pushed_at"), [(1, [200, 300, 400]), (15, [300])])
+def test_weights_are_pushed_once_enough_updates_are_new(every, pushed_at, monkeypatch, tmp_path):
+    """DDPG (TINY) makes 10 updates per 100-frame batch from frame 200 on; with
+    weight_sync_every=15 only the batch that brings the new updates to 20 pushes."""
+    events = []
+    real = rave_mujoco.push_policy_weights
+
+    def counting(collector, policy):
+        events.append("push")
+        real(collector, policy)
+
+    def probe(frames, loss):  # called after each batch's updates and push
+        events.append(frames)
+        return {}
+
+    monkeypatch.setattr(rave_mujoco, "push_policy_weights", counting)
+    cfg = make_cfg(*TINY, "algorithm=ddpg", f"collector.weight_sync_every={every}")
+    assert rave_mujoco.train(cfg, str(tmp_path), probe=probe)["updates"] == 30
+    batches = [e for e in events if e != "push"]
+    assert batches == [100, 200, 300, 400]
+    # the batch a push belongs to is the next probe call after it
+    pushes = [events[k + 1] for k, e in enumerate(events) if e == "push"]
+    assert pushes == pushed_at
