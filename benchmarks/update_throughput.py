@@ -14,7 +14,10 @@ Measured, in this order:
    recipe's ``world_model_update`` / ``agent_update``); and the value target alone;
 3. the paper's row: seconds for 500 batches of 512 at the paper's sizes (``preset=paper``),
    RAVE vs STEVE vs DDPG (extrapolated from ``--paper-batches`` timed batches);
-4. a scaling table: one RAVE update as N, K, H_max and the batch size grow.
+4. a scaling table: one RAVE update as N, K, H_max and the batch size grow;
+5. with ``--compile``: the recipe's ``ddpg`` and ``rave`` updates under
+   ``compile.enabled=true`` and the plain-PyTorch DDPG under ``torch.compile``, beside
+   their eager twins (compile time is printed, not timed).
 
 FLOPs per update are counted with ``torch.utils.flop_counter`` (matmuls forward and
 backward), so "fraction of peak" is counted FLOPs x updates/s over the matmul peak.
@@ -220,10 +223,12 @@ def recipe_update(algorithm: str, overrides: list[str], device, target_only=Fals
 
         return step, cfg, loss
 
+    world_model_step, agent_step = recipe.make_update_steps(cfg, loss, wm_loss, optimizers, updater)
+
     def step(batch):
         if wm_loss is not None:
-            recipe.world_model_update(wm_loss, optimizers["world_model"], batch)
-        recipe.agent_update(loss, optimizers, updater, batch)
+            world_model_step(batch)
+        agent_step(batch)
 
     return step, cfg, loss
 
@@ -302,8 +307,9 @@ def stock_ddpg_update(cfg, device):
 
 
 # ----------------------------------------------------------------------- sections
-def section_default(device, seconds, peak) -> dict:
-    """All workloads at the recipe's default (CPU) sizes."""
+def section_default(device, seconds, peak, compiled=False) -> dict:
+    """All workloads at the recipe's default (CPU) sizes; with ``compiled``, also the
+    recipe's updates under ``compile.enabled=true`` and plain DDPG under ``torch.compile``."""
     cfg = recipe_config([])
     data = batches(cfg.replay_buffer.batch_size, device)
     cases = [
@@ -317,6 +323,20 @@ def section_default(device, seconds, peak) -> dict:
         cases.append(Case(f"target only: {algo}", step, data))
     for case in cases:
         case.count_flops()
+    if compiled:
+        eager = {case.name: case for case in cases}
+        twins = [Case("plain DDPG compiled", torch.compile(plain_ddpg_update(cfg, device)), data)]
+        twins[0].flops = eager["plain PyTorch DDPG"].flops
+        for algo in ("ddpg", "rave"):
+            step = recipe_update(algo, ["compile.enabled=true"], device)[0]
+            twins.append(Case(f"ours compiled: {algo}", step, data))
+            twins[-1].flops = eager[f"ours: {algo}"].flops  # the same arithmetic
+        started = time.perf_counter()
+        for case in twins:  # the compile itself, outside the timings
+            for _ in range(2):
+                case.step()
+        print(f"compiled 3 updates in {time.perf_counter() - started:.0f} s", flush=True)
+        cases += twins
     measure(cases, device, seconds)
     rows = {}
     for case in cases:
@@ -335,6 +355,18 @@ def section_default(device, seconds, peak) -> dict:
         "TorchRL DDPGLoss / plain PyTorch DDPG": t["TorchRL DDPGLoss"] / t["plain PyTorch DDPG"],
         "rave / ours ddpg": t["ours: rave"] / t["ours: ddpg"],
     }
+    if compiled:
+        ratios.update(
+            {
+                "compiled / eager: ours rave": t["ours compiled: rave"] / t["ours: rave"],
+                "compiled / eager: ours ddpg": t["ours compiled: ddpg"] / t["ours: ddpg"],
+                "compiled / eager: plain DDPG": t["plain DDPG compiled"] / t["plain PyTorch DDPG"],
+                "ours ddpg compiled / plain PyTorch DDPG": t["ours compiled: ddpg"]
+                / t["plain PyTorch DDPG"],
+                "ours ddpg compiled / plain DDPG compiled": t["ours compiled: ddpg"]
+                / t["plain DDPG compiled"],
+            }
+        )
     sizes = {
         "batch": cfg.replay_buffer.batch_size,
         "N": cfg.world_model.num_models,
@@ -489,6 +521,11 @@ def main(argv=None) -> dict:
     )
     parser.add_argument("--no-scaling", action="store_true", help="skip the scaling table")
     parser.add_argument(
+        "--compile",
+        action="store_true",
+        help="also time the recipe's compile.enabled=true updates and a compiled plain DDPG",
+    )
+    parser.add_argument(
         "--threads", type=int, default=None, help="torch threads (default: torch's own)"
     )
     parser.add_argument(
@@ -510,7 +547,7 @@ def main(argv=None) -> dict:
         "threads": torch.get_num_threads(),
         "torch": torch.__version__,
         "matmul_peak_gflops": peak,
-        "default": section_default(device, args.seconds, peak),
+        "default": section_default(device, args.seconds, peak, compiled=args.compile),
     }
     if args.paper_batches > 0:
         result["paper"] = section_paper(device, args.paper_batches, peak)

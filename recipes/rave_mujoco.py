@@ -31,7 +31,6 @@ from utils import (  # noqa: E402
     Checkpointer,
     CollectorFailure,
     NonFiniteEnvOutput,
-    agent_update,
     check_config,
     check_finite,
     check_resumable,
@@ -45,6 +44,7 @@ from utils import (  # noqa: E402
     make_loss,
     make_optimizers,
     make_replay_buffer,
+    make_update_steps,
     make_world_model,
     make_world_model_loss,
     push_policy_weights,
@@ -52,7 +52,6 @@ from utils import (  # noqa: E402
     rng_state,
     saved_config,
     set_rng_state,
-    world_model_update,
 )
 
 Probe = Callable[[int, object], dict]
@@ -156,11 +155,13 @@ def train(cfg: DictConfig, run_dir: str, probe: Probe | None = None) -> dict[str
             for key, value in metrics.items():
                 logger.log_scalar(key, value, step=counters["frames"])
 
+    wm_update, agent_update = make_update_steps(cfg, loss, wm_loss, optimizers, updater)
+
     def world_model_step():
-        return world_model_update(wm_loss, optimizers["world_model"], rb.sample())
+        return wm_update(rb.sample())
 
     def agent_step(step_actor: bool):
-        return agent_update(loss, optimizers, updater, rb.sample(), step_actor)
+        return agent_update(rb.sample(), step_actor)
 
     def guarded(collector):
         """The collector's batches; a worker that raises or dies stops the run cleanly: the

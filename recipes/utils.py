@@ -189,6 +189,10 @@ def check_config(cfg: DictConfig) -> Algorithm:
         )
     if cfg.collector.backend == "ray":
         check_ray_config(cfg)
+    _require(isinstance(cfg.compile.enabled, bool), "compile.enabled", cfg.compile.enabled,
+             "true or false")  # fmt: skip
+    _require(cfg.compile.mode in COMPILE_MODES, "compile.mode", cfg.compile.mode,
+             f"one of {COMPILE_MODES} (null: torch.compile's default)")  # fmt: skip
     total = cfg.collector.total_frames
     _require(
         cfg.collector.frames_per_batch <= total,
@@ -450,6 +454,27 @@ def agent_update(loss, optimizers: dict, target_updater, batch: TensorDictBase, 
             optimizers["alpha"].step()
         target_updater.step()
     return out
+
+
+COMPILE_MODES = [None, "default", "reduce-overhead", "max-autotune", "max-autotune-no-cudagraphs"]
+
+
+def make_update_steps(cfg: DictConfig, loss, wm_loss, optimizers: dict, target_updater):
+    """The recipe's two update steps on a batch: ``world_model_step(batch)`` and
+    ``agent_step(batch, step_actor)``; with ``compile.enabled`` both go through
+    ``torch.compile`` (``compile.mode``). Compiling happens at the first call of each, and
+    again once for ``step_actor=False`` under TD3's policy delay."""
+
+    def world_model_step(batch):
+        return world_model_update(wm_loss, optimizers["world_model"], batch)
+
+    def agent_step(batch, step_actor=True):
+        return agent_update(loss, optimizers, target_updater, batch, step_actor)
+
+    if cfg.compile.enabled:
+        world_model_step = torch.compile(world_model_step, mode=cfg.compile.mode)
+        agent_step = torch.compile(agent_step, mode=cfg.compile.mode)
+    return world_model_step, agent_step
 
 
 def make_collector(cfg: DictConfig, env, policy, device, frames_done: int = 0):
