@@ -104,6 +104,8 @@ def train(cfg: DictConfig, run_dir: str, probe: Probe | None = None) -> dict[str
     else:
         cfg.replay_buffer.size = replay_buffer_size(cfg)  # fixed once, so resuming keeps it
     device = torch.device(cfg.collector.device or ("cuda" if torch.cuda.is_available() else "cpu"))
+    if cfg.threads:
+        torch.set_num_threads(cfg.threads)
     torch.manual_seed(cfg.env.seed)
 
     env = make_env(cfg, device)

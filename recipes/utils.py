@@ -88,6 +88,15 @@ def check_config(cfg: DictConfig) -> Algorithm:
     import gymnasium as gym
 
     _require(cfg.algorithm in ALGORITHMS, "algorithm", cfg.algorithm, f"one of {list(ALGORITHMS)}")
+    _require(
+        cfg.threads is None
+        or (
+            isinstance(cfg.threads, int) and not isinstance(cfg.threads, bool) and cfg.threads >= 1
+        ),
+        "threads",
+        cfg.threads,
+        "null or an integer >= 1",
+    )
     env_id = str(cfg.env.name)
     if ":" in env_id:  # gymnasium's "module:EnvId": importing the module registers the id
         import importlib

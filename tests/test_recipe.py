@@ -136,6 +136,7 @@ class TestConfigErrors:
             ("exploration.epsilon=1.5", "exploration.epsilon=1.5"),
             ("logger.backend=mlflow", "logger.backend='mlflow'.*one of"),
             ("network.num_critics=0", "network.num_critics=0"),
+            ("threads=0", "threads=0 is invalid: expected null or an integer >= 1"),
         ],
     )
     def test_bad_value_named_before_training(self, override, message, tmp_path):
@@ -143,6 +144,13 @@ class TestConfigErrors:
         with pytest.raises(ValueError, match=message):
             rave_mujoco.train(cfg, str(tmp_path))
         assert not (tmp_path / "checkpoints").exists()
+
+    def test_threads_key_sets_torch_threads(self, monkeypatch, tmp_path):
+        calls = []
+        monkeypatch.setattr(torch, "set_num_threads", calls.append)  # the suite's own stay
+        cfg = make_cfg(*TINY, "algorithm=ddpg", "threads=1", "collector.total_frames=200")
+        rave_mujoco.train(cfg, str(tmp_path))
+        assert calls == [1]
 
     def test_unknown_preset_lists_choices(self):
         with pytest.raises(Exception, match="(?s)preset/fast.*Available options.*cpu.*paper"):
