@@ -157,13 +157,14 @@ def train(cfg: DictConfig, run_dir: str, probe: Probe | None = None) -> dict[str
             for key, value in metrics.items():
                 logger.log_scalar(key, value, step=counters["frames"])
 
-    wm_update, agent_update = make_update_steps(cfg, loss, wm_loss, optimizers, updater)
+    # compiled with compile.enabled
+    update_world_model, update_agent = make_update_steps(cfg, loss, wm_loss, optimizers, updater)
 
     def world_model_step():
-        return wm_update(rb.sample())
+        return update_world_model(rb.sample())
 
     def agent_step(step_actor: bool):
-        return agent_update(rb.sample(), step_actor)
+        return update_agent(rb.sample(), step_actor)
 
     def guarded(collector):
         """The collector's batches; a worker that raises or dies stops the run cleanly: the
