@@ -335,7 +335,7 @@ def section_default(device, seconds, peak, compiled=False) -> dict:
         for case in twins:  # the compile itself, outside the timings
             for _ in range(2):
                 case.step()
-        print(f"compiled 3 updates in {time.perf_counter() - started:.0f} s", flush=True)
+        print(f"compiled the {len(twins)} --compile cases in {time.perf_counter() - started:.0f} s")
         cases += twins
     measure(cases, device, seconds)
     rows = {}

@@ -78,6 +78,14 @@ def test_frames_from_every_worker_and_weight_push(backend):
         after = TensorDict.from_module(policy).clone()
         assert not torch.equal(before["module", "0", "module", "0", "module", "0", "weight"],
                                after["module", "0", "module", "0", "module", "0", "weight"])  # fmt: skip
+        if backend[0].endswith("ray"):
+            # Ray workers keep their own copy until the push: the check below sees the push
+            assert_workers_hold(before)
+        else:
+            # MultiSyncCollector moves the learner's CPU parameters into shared memory, so
+            # its workers read every change at once; the push then only synchronises
+            assert all(p.is_shared() for p in policy.parameters())
+            assert_workers_hold(after)
         recipe_utils.push_policy_weights(collector, policy)
         assert_workers_hold(after)
     finally:
