@@ -20,17 +20,17 @@ import argparse
 import importlib.util
 import json
 import os
-import sys
 import time
 from pathlib import Path
 
 import torch
+from update_throughput import recipe_config
+
+from torchrl_rave.training.agent import make_actor, make_env
+from torchrl_rave.training.collect import make_collector, push_policy_weights
+from torchrl_rave.training.config import check_config
 
 ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT / "recipes"))
-
-import utils as recipe  # noqa: E402
-from update_throughput import recipe_config  # noqa: E402
 
 
 def measure(env_name: str, backend: str, workers: int, frames_per_batch: int, batches: int):
@@ -45,17 +45,17 @@ def measure(env_name: str, backend: str, workers: int, frames_per_batch: int, ba
             f"ray.num_cpus={max(workers, os.cpu_count() or 1)}",
         ]
     )
-    algo = recipe.check_config(cfg)
-    env = recipe.make_env(cfg, torch.device("cpu"))
-    _, policy = recipe.make_actor(cfg, env, algo)
-    collector = recipe.make_collector(cfg, env, policy, torch.device("cpu"))
+    algo = check_config(cfg)
+    env = make_env(cfg, torch.device("cpu"))
+    _, policy = make_actor(cfg, env, algo)
+    collector = make_collector(cfg, env, policy, torch.device("cpu"))
     try:
         iterator = iter(collector)
         next(iterator)  # warm-up: worker start, first resets
         start, frames = time.perf_counter(), 0
         for data in iterator:
             frames += data.numel()
-            recipe.push_policy_weights(collector, policy)  # as the training loop does
+            push_policy_weights(collector, policy)  # as the training loop does
         return frames / (time.perf_counter() - start)
     finally:
         collector.shutdown()

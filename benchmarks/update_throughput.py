@@ -11,7 +11,7 @@ Measured, in this order:
 2. full updates at the recipe's default sizes (``recipes/config.yaml``, Hopper-v5 shapes):
    a plain-PyTorch DDPG, TorchRL's stock ``DDPGLoss``, and the recipe's ``ddpg``, ``steve``
    and ``rave`` (world-model step + K critics + actor + soft target update, exactly the
-   recipe's ``world_model_update`` / ``agent_update``); and the value target alone;
+   recipe's ``WorldModelTrainer.update`` / ``agent_update``); and the value target alone;
 3. the paper's row: seconds for 500 batches of 512 at the paper's sizes (``preset=paper``),
    RAVE vs STEVE vs DDPG (extrapolated from ``--paper-batches`` timed batches);
 4. a scaling table: one RAVE update as N, K, H_max and the batch size grow;
@@ -33,7 +33,6 @@ import json
 import os
 import platform
 import statistics
-import sys
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -47,10 +46,11 @@ from torchrl.data import Bounded
 from torchrl.modules import MLP, Actor, ValueOperator
 from torchrl.objectives import DDPGLoss, SoftUpdate, ValueEstimators
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT / "recipes"))
+from torchrl_rave.training.agent import make_agent
+from torchrl_rave.training.config import check_config
+from torchrl_rave.training.update import make_agent_step
 
-import utils as recipe  # noqa: E402
+ROOT = Path(__file__).resolve().parents[1]
 
 # Hopper-v5's shapes; the networks' sizes come from the recipe's config.
 OBS_DIM, ACT_DIM = 11, 3
@@ -186,14 +186,10 @@ def recipe_update(algorithm: str, overrides: list[str], device, target_only=Fals
     """The recipe's update for ``algorithm`` (its own builders and update functions):
     ``(step, config, loss)``."""
     cfg = recipe_config([f"algorithm={algorithm}", *overrides])
-    algo = recipe.check_config(cfg)
+    algo = check_config(cfg)
     torch.manual_seed(0)
-    env = _Spec(device)
-    actor, _ = recipe.make_actor(cfg, env, algo)
-    critic = recipe.make_critic(cfg, env)
-    world_model = recipe.make_world_model(cfg, env).to(device) if algo.model_based else None
-    loss, updater = recipe.make_loss(cfg, env, algo, actor, critic, world_model)
-    loss = loss.to(device)
+    agent = make_agent(cfg, _Spec(device), device)
+    loss, world_model = agent.loss, agent.world_model
     if world_model is not None:
         # the value estimator's own input checks sync the device once per call; the
         # recipe keeps them, and so does the benchmark
@@ -203,8 +199,6 @@ def recipe_update(algorithm: str, overrides: list[str], device, target_only=Fals
             torch.randn(256, OBS_DIM, device=device),
             torch.randn(256, device=device),
         )
-    optimizers = recipe.make_optimizers(cfg, loss, world_model)
-    wm_loss = recipe.make_world_model_loss(world_model)
 
     if target_only:
         estimator = loss.value_estimator
@@ -219,15 +213,16 @@ def recipe_update(algorithm: str, overrides: list[str], device, target_only=Fals
             def step(batch):
                 # TD(0) needs the next value first: what EnsembleDDPGLoss computes for it
                 with torch.no_grad():
-                    return loss.value_loss(batch)[1]["target_value"]
+                    return loss.loss_value(batch)[1]["target_value"]
 
         return step, cfg, loss
 
-    world_model_step, agent_step = recipe.make_update_steps(cfg, loss, wm_loss, optimizers, updater)
+    agent_step = make_agent_step(cfg, loss, agent.optimizers, agent.target_updater)
+    wm_trainer = agent.world_model_trainer
 
     def step(batch):
-        if wm_loss is not None:
-            world_model_step(batch)
+        if wm_trainer is not None:
+            wm_trainer.update(batch)
         agent_step(batch)
 
     return step, cfg, loss

@@ -16,12 +16,12 @@ from __future__ import annotations
 
 import argparse
 import sys
-from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from compare import final_eval, launch, run_dir  # noqa: E402
-from plot_curves import curves, plot, table  # noqa: E402
+from compare import cell, run, run_dir
+from plot_curves import plot, table
+
+from torchrl_rave.training.runs import curves
 
 # variant -> (algorithm, overrides, legend label)
 VARIANTS = {
@@ -51,27 +51,13 @@ def main(argv: list[str] | None = None) -> str:
     parser.add_argument("--plot-only", action="store_true", help="run nothing, plot what exists")
     args = parser.parse_args(argv)
 
-    todo = [
-        (variant, seed)
-        for variant in args.variants
+    cells = [
+        cell(args.out, args.env, VARIANTS[v][0], seed, args.frames, [*extra, *VARIANTS[v][1]], v)
+        for v in args.variants
         for seed in args.seeds
-        if final_eval(run_dir(args.out, args.env, variant, seed), variant, args.frames) is None
     ]
-
-    def job(item):
-        variant, seed = item
-        algorithm, overrides, _ = VARIANTS[variant]
-        path = run_dir(args.out, args.env, variant, seed)
-        run_extra = [*extra, *overrides, f"logger.exp_name={variant}"]
-        return launch(path, args.env, algorithm, seed, args.frames, run_extra)
-
-    if todo and not args.plot_only:
-        print(f"{len(todo)} runs to go, {args.jobs} at a time, logs in <run dir>/stdout.log")
-        with ThreadPoolExecutor(args.jobs) as pool:
-            for item, code in zip(todo, pool.map(job, todo), strict=True):
-                print(f"{item}: {'done' if code == 0 else f'exit code {code}'}")
-                if code != 0:
-                    raise SystemExit(f"run {item} failed; see its stdout.log")
+    if not args.plot_only:
+        run(cells, args.jobs)
 
     groups = {
         VARIANTS[v][2]: [run_dir(args.out, args.env, v, s) for s in args.seeds]

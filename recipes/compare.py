@@ -14,14 +14,12 @@ after ``--`` go to every run.
 from __future__ import annotations
 
 import argparse
-import csv
-import os
-import subprocess
 import sys
-from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import numpy as np
+
+from torchrl_rave.training.runs import Cell, launch_grid, value_logged_at
 
 RECIPE = Path(__file__).resolve().parent / "rave_mujoco.py"
 
@@ -46,40 +44,38 @@ REFERENCE = {
 }
 
 
-def run_dir(out: Path, env: str, algorithm: str, seed: int) -> Path:
-    return out / env / algorithm / f"seed{seed}"
+def run_dir(out: Path, env: str, variant: str, seed: int) -> Path:
+    return out / env / variant / f"seed{seed}"
 
 
-def final_eval(path: Path, algorithm: str, frames: int) -> float | None:
-    """The evaluation return logged at ``frames``, or ``None`` if the run has not got there."""
-    scalars = path / algorithm / "scalars" / "eval" / "return.csv"
-    if not scalars.exists():
-        return None
-    with open(scalars) as f:
-        rows = [(int(s), float(v)) for s, v in csv.reader(f)]
-    done = [v for s, v in rows if s == frames]
-    return done[-1] if done else None
-
-
-def launch(path: Path, env: str, algorithm: str, seed: int, frames: int, extra: list[str]) -> int:
-    args = [
+def cell(out: Path, env: str, algorithm: str, seed: int, frames: int, extra=(), variant=None):
+    """The grid cell of one (env, algorithm, seed); ``variant`` names its directory and
+    experiment when it is not the algorithm (the alpha ablation's constant-alpha runs)."""
+    variant = variant or algorithm
+    overrides = (
         f"algorithm={algorithm}",
         f"env.name={env}",
         f"env.seed={seed}",
-        f"collector.total_frames={frames}",
-        "logger.progress_bar=false",
-        f"hydra.run.dir={path}",
+        f"logger.exp_name={variant}",
         *extra,
-    ]
-    if (path / "checkpoints" / "latest").exists():
-        args.append(f"resume={path}")
-    path.mkdir(parents=True, exist_ok=True)
-    # one thread per run: the grid runs --jobs trainings side by side
-    environ = {**os.environ, "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
-    with open(path / "stdout.log", "a") as log:
-        return subprocess.call(
-            [sys.executable, str(RECIPE), *args], stdout=log, stderr=subprocess.STDOUT, env=environ
-        )
+    )
+    return Cell(run_dir(out, env, variant, seed), frames, overrides)
+
+
+def run(cells: list[Cell], jobs: int) -> None:
+    """Launches the unfinished cells; stops with the first failure's log named."""
+    todo = [c for c in cells if not c.finished()]
+    if not todo:
+        return
+    print(f"{len(todo)} runs to go, {jobs} at a time, logs in <run dir>/stdout.log")
+
+    def report(c: Cell, code: int) -> None:
+        print(f"{c.run_dir}: {'done' if code == 0 else f'exit code {code}'}", flush=True)
+
+    codes = launch_grid(RECIPE, todo, jobs, on_done=report)
+    failed = [c for c, code in codes.items() if code != 0]
+    if failed:
+        raise SystemExit(f"{len(failed)} run(s) failed; see {failed[0].run_dir / 'stdout.log'}")
 
 
 def table(out: Path, envs, algorithms, seeds, frames) -> str:
@@ -90,7 +86,10 @@ def table(out: Path, envs, algorithms, seeds, frames) -> str:
     ]
     for env in envs:
         for algorithm in algorithms:
-            values = [final_eval(run_dir(out, env, algorithm, s), algorithm, frames) for s in seeds]
+            values = [
+                value_logged_at(run_dir(out, env, algorithm, s), "eval/return", frames)
+                for s in seeds
+            ]
             values = [v for v in values if v is not None]
             cell = f"{np.mean(values):.0f} ± {np.std(values):.0f}" if values else "n/a"
             ref = REFERENCE.get(env.split("-")[0], {}).get(algorithm, "")
@@ -112,21 +111,14 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--table-only", action="store_true", help="print the table, run nothing")
     args = parser.parse_args(argv)
 
-    todo = [
-        (env, algorithm, seed)
+    cells = [
+        cell(args.out, env, algorithm, seed, args.frames, extra)
         for env in args.envs
         for algorithm in args.algorithms
         for seed in args.seeds
-        if final_eval(run_dir(args.out, env, algorithm, seed), algorithm, args.frames) is None
     ]
-    if not args.table_only and todo:
-        print(f"{len(todo)} runs to go, {args.jobs} at a time, logs in <run dir>/stdout.log")
-        with ThreadPoolExecutor(args.jobs) as pool:
-            codes = pool.map(
-                lambda job: launch(run_dir(args.out, *job), *job, args.frames, extra), todo
-            )
-            for job, code in zip(todo, codes, strict=True):
-                print(f"{job}: {'done' if code == 0 else f'exit code {code}'}")
+    if not args.table_only:
+        run(cells, args.jobs)
     print(table(args.out, args.envs, args.algorithms, args.seeds, args.frames))
 
 

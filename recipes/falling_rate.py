@@ -20,15 +20,16 @@ from __future__ import annotations
 
 import argparse
 import math
-import os
-import sys
 from pathlib import Path
 
 import numpy as np
 import torch
+from plot_curves import band_plot
+from q_vs_return import load_run
 
-sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-from plot_curves import band_plot, parse_groups, read_metric  # noqa: E402
+from torchrl_rave.training.checkpoint import saved_config
+from torchrl_rave.training.evaluate import evaluate
+from torchrl_rave.training.runs import parse_groups, read_scalar
 
 Z95 = 1.959963984540054  # the standard normal's 97.5 % quantile
 
@@ -54,12 +55,9 @@ def wilson_interval(falls: int, episodes: int, z: float = Z95) -> tuple[float, f
 
 def final_falls(run_dir: Path, episodes: int, seed: int) -> int:
     """Falls in ``episodes`` deterministic episodes of the run's latest checkpoint."""
-    import utils
-    from q_vs_return import load_run
-
     _, env, actor, _ = load_run(run_dir)
     env.set_seed(seed)
-    rate = utils.evaluate(env, actor, episodes)["eval/falling_rate"]
+    rate = evaluate(env, actor, episodes)["eval/falling_rate"]
     return round(rate * episodes)
 
 
@@ -67,12 +65,10 @@ def logged_falls(
     run_dirs: list[Path], eval_episodes: int | None
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Steps every run logged, and the falls and episodes pooled over runs at each."""
-    import utils
-
     data = []
     for run in run_dirs:
-        steps, rates = read_metric(run, "eval/falling_rate")
-        n = eval_episodes if eval_episodes else int(utils.saved_config(run).eval.episodes)
+        steps, rates = read_scalar(run, "eval/falling_rate")
+        n = eval_episodes if eval_episodes else int(saved_config(run).eval.episodes)
         data.append((steps, np.rint(rates * n).astype(int), n))
     common = sorted(set.intersection(*(set(s.tolist()) for s, _, _ in data)))
     falls = sum(k[np.searchsorted(s, common)] for s, k, _ in data)

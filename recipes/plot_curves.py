@@ -15,50 +15,11 @@ last value logged at or before it.
 from __future__ import annotations
 
 import argparse
-import csv
-import glob
 from pathlib import Path
 
 import numpy as np
 
-
-def read_metric(run_dir: Path, metric: str) -> tuple[np.ndarray, np.ndarray]:
-    """Steps and values of ``metric`` in one run directory."""
-    files = sorted(Path(run_dir).glob(f"*/scalars/{metric}.csv"))
-    if len(files) != 1:
-        raise FileNotFoundError(
-            f"{run_dir}: expected one <exp>/scalars/{metric}.csv, found {len(files)}"
-        )
-    with open(files[0]) as f:
-        rows = [(int(step), float(value)) for step, value in csv.reader(f)]
-    # a resumed run logs the steps after its last checkpoint twice: keep the later value
-    latest = dict(rows)
-    steps = np.array(sorted(latest))
-    return steps, np.array([latest[s] for s in steps])
-
-
-def parse_groups(specs: list[str]) -> dict[str, list[Path]]:
-    groups = {}
-    for spec in specs:
-        if "=" not in spec:
-            raise ValueError(f"{spec!r}: expected LABEL=PATTERN")
-        label, pattern = spec.split("=", 1)
-        runs = sorted(Path(p) for p in glob.glob(pattern))
-        if not runs:
-            raise FileNotFoundError(f"{label}: no run directory matches {pattern!r}")
-        groups[label] = runs
-    return groups
-
-
-def curves(groups: dict[str, list[Path]], metric: str) -> dict[str, tuple[np.ndarray, np.ndarray]]:
-    """Per group: the steps all seeds share and the values ``[seeds, steps]``."""
-    out = {}
-    for label, runs in groups.items():
-        data = [read_metric(r, metric) for r in runs]
-        common = sorted(set.intersection(*(set(s.tolist()) for s, _ in data)))
-        values = np.stack([v[np.searchsorted(s, common)] for s, v in data])
-        out[label] = (np.array(common), values)
-    return out
+from torchrl_rave.training.runs import curves, parse_groups
 
 
 def value_at(steps: np.ndarray, values: np.ndarray, frame: int) -> np.ndarray:

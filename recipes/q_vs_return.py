@@ -18,32 +18,19 @@ the true returns, with the identity line.
 from __future__ import annotations
 
 import argparse
-import os
-import sys
 from pathlib import Path
 
 import numpy as np
 import torch
 
-sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-import utils  # noqa: E402
+from torchrl_rave.training.agent import critic_mean, load_agent, make_env
 
 
 def load_run(run_dir: Path):
-    """Rebuilds a run's env, deterministic policy and loss (critics) from its checkpoint."""
-    path = utils.Checkpointer(run_dir).latest()
-    if path is None:
-        raise FileNotFoundError(f"{run_dir}: no checkpoint (checkpoints/latest) found")
-    state = torch.load(path / "state.pt", weights_only=False)
-    cfg = utils.saved_config(run_dir)
-    algo = utils.ALGORITHMS[cfg.algorithm]
-    env = utils.make_env(cfg, torch.device("cpu"))
-    actor, _ = utils.make_actor(cfg, env, algo)
-    critic = utils.make_critic(cfg, env)
-    world_model = utils.make_world_model(cfg, env) if algo.model_based else None
-    loss, _ = utils.make_loss(cfg, env, algo, actor, critic, world_model)
-    loss.load_state_dict(state["loss"])
-    return cfg, env, actor, loss
+    """A run's config, an env for its task, its deterministic policy and its loss (critics),
+    from its latest checkpoint."""
+    cfg, agent = load_agent(run_dir)
+    return cfg, make_env(cfg, torch.device("cpu")), agent.actor, agent.loss
 
 
 def discounted_returns(rewards: np.ndarray, gamma: float) -> np.ndarray:
@@ -70,7 +57,7 @@ def collect(
             rollout = env.rollout(1_000_000, actor, break_when_any_done=True)
             rewards = rollout["next", "reward"].squeeze(-1).double().numpy()
             g = discounted_returns(rewards, cfg.optim.gamma)
-            q = utils.critic_mean(loss, rollout).double().numpy() / cfg.env.reward_scale
+            q = critic_mean(loss, rollout).double().numpy() / cfg.env.reward_scale
             keep = len(g)
             if not rollout["next", "terminated"][-1].item():
                 keep = max(0, keep - drop_tail)

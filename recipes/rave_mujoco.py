@@ -6,101 +6,65 @@ python recipes/rave_mujoco.py preset=paper env.name=HalfCheetah-v5           # p
 python recipes/rave_mujoco.py resume=outputs/2026-11-22/10-00-00             # continue a run
 
 ``algorithm`` picks ddpg | mve | steve | rave | rave_constant (the estimator settings of one
-K-critic DDPG learner) or td3 | sac (TorchRL's losses). All share collection, evaluation,
-logging and checkpoints. See recipes/README.md for every key and metric.
+K-critic DDPG learner) or td3 | sac (TorchRL's losses). The pieces come from
+``torchrl_rave.training``; this file is the training loop. See recipes/README.md for every
+key and metric.
 """
 
 from __future__ import annotations
 
-import logging
-import os
-import signal
-import sys
 import time
 from collections import defaultdict
-from collections.abc import Callable
+from pathlib import Path
 
 import hydra
 import torch
 import tqdm
 from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig, OmegaConf
+from torchrl.data import ReplayBuffer
 
-sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-from utils import (  # noqa: E402
-    Checkpointer,
-    CollectorFailure,
-    NonFiniteEnvOutput,
-    check_config,
-    check_finite,
-    check_resumable,
-    config_for_resume,
-    evaluate,
-    make_actor,
-    make_collector,
-    make_critic,
+from torchrl_rave.training.agent import (
+    Agent,
+    critic_loss_key,
+    critic_mean,
+    make_agent,
     make_env,
-    make_logger,
-    make_loss,
-    make_optimizers,
     make_replay_buffer,
-    make_update_steps,
-    make_world_model,
-    make_world_model_loss,
-    push_policy_weights,
-    replay_buffer_size,
-    rng_state,
-    saved_config,
-    set_rng_state,
 )
+from torchrl_rave.training.checkpoint import RunCheckpoint, config_for_resume, saved_config
+from torchrl_rave.training.collect import (
+    NonFiniteEnvOutput,
+    StopRequest,
+    check_finite,
+    guarded_batches,
+    make_collector,
+    push_policy_weights,
+)
+from torchrl_rave.training.config import check_config, check_resumable, replay_buffer_size
+from torchrl_rave.training.evaluate import evaluate, make_logger
+from torchrl_rave.training.update import make_agent_step
 
-Probe = Callable[[int, object], dict]
-
-
-class _StopRequest:
-    """SIGINT/SIGTERM ask the loop to checkpoint and stop at the end of the current batch;
-    a second signal stops at once."""
-
-    def __init__(self) -> None:
-        self.requested = False
-        self._previous = {}
-
-    def __enter__(self):
-        if hasattr(signal, "SIGTERM") and _in_main_thread():
-            for sig in (signal.SIGINT, signal.SIGTERM):
-                self._previous[sig] = signal.signal(sig, self._handle)
-        return self
-
-    def _handle(self, signum, frame):
-        self.requested = True
-        signal.signal(signum, self._previous[signum])
-
-    def __exit__(self, *exc):
-        for sig, handler in self._previous.items():
-            signal.signal(sig, handler)
+CONFIG = Path(__file__).with_name("config.yaml")
 
 
-def _in_main_thread() -> bool:
-    import threading
+def defaults() -> DictConfig:
+    """config.yaml without its defaults list: what keys added since a run started take."""
+    base = OmegaConf.load(CONFIG)
+    base.pop("defaults")
+    return base
 
-    return threading.current_thread() is threading.main_thread()
 
-
-def train(cfg: DictConfig, run_dir: str, probe: Probe | None = None) -> dict[str, float]:
+def train(cfg: DictConfig, run_dir: str) -> dict[str, float]:
     """Runs (or, with ``cfg.resume`` set, continues) one training run; returns the final
-    evaluation metrics. Everything is written under ``run_dir``.
-
-    ``probe(frames, loss)``, when given, is called after every collector batch's updates;
-    the scalars it returns are logged with the other metrics (the toy study records its
-    Q-estimates this way).
-    """
-    algo = check_config(cfg)
+    evaluation metrics. Everything is written under ``run_dir``."""
+    check_config(cfg)
     cfg = cfg.copy()
     if cfg.resume:
         run_dir = cfg.resume
-        saved_cfg = saved_config(run_dir)
-        check_resumable(cfg, saved_cfg)
-        cfg.replay_buffer.size = saved_cfg.replay_buffer.size
+        saved = saved_config(run_dir, defaults())
+        check_resumable(cfg, saved)
+        cfg.replay_buffer.size = saved.replay_buffer.size
     else:
         cfg.replay_buffer.size = replay_buffer_size(cfg)  # fixed once, so resuming keeps it
     device = torch.device(cfg.collector.device or ("cuda" if torch.cuda.is_available() else "cpu"))
@@ -108,144 +72,50 @@ def train(cfg: DictConfig, run_dir: str, probe: Probe | None = None) -> dict[str
         torch.set_num_threads(cfg.threads)
     torch.manual_seed(cfg.env.seed)
 
-    env = make_env(cfg, device)
-    eval_env = make_env(cfg, device)
-    actor, policy = make_actor(cfg, env, algo)
-    critic = make_critic(cfg, env)
-    world_model = make_world_model(cfg, env).to(device) if algo.model_based else None
-    loss, updater = make_loss(cfg, env, algo, actor, critic, world_model)
-    loss, policy = loss.to(device), policy.to(device)
-    wm_loss = make_world_model_loss(world_model)
-    optimizers = make_optimizers(cfg, loss, world_model)
+    # Environments, agent, replay buffer
+    env, eval_env = make_env(cfg, device), make_env(cfg, device)
+    agent = make_agent(cfg, env, device)
     rb = make_replay_buffer(cfg, device)
-    checkpointer = Checkpointer(run_dir)
+    update_agent = make_agent_step(cfg, agent.loss, agent.optimizers, agent.target_updater)
 
-    counters = {"frames": 0, "updates": 0, "update_budget": 0.0, "pretrained": False}
-    counters["next_eval"] = cfg.eval.interval
-    counters["next_checkpoint"] = cfg.checkpoint.interval
-    logger_state = None
+    # Counters and checkpoints; a resumed run restores everything it saved
+    checkpoint = RunCheckpoint(run_dir)
+    counters = {"frames": 0, "updates": 0, "update_budget": 0.0}
+    counters.update(next_eval=cfg.eval.interval, next_checkpoint=cfg.checkpoint.interval)
+    logger_state: dict = {}
     if cfg.resume:
-        saved = checkpointer.load(rb)
-        loss.load_state_dict(saved["loss"])
-        policy.load_state_dict(saved["policy"])
-        if world_model is not None:
-            world_model.load_state_dict(saved["world_model"])
-        for name, opt in optimizers.items():
-            opt.load_state_dict(saved["optimizers"][name])
-        counters.update(saved["counters"])
-        set_rng_state(saved["rng"])
-        logger_state = saved.get("logger")
-    logger = make_logger(cfg, run_dir, logger_state)
+        state = dict(counters=counters, replay_buffer=rb, logger=logger_state)
+        checkpoint.load(**state, **agent.state_components())
+    logger = make_logger(cfg, run_dir, logger_state or None)
     # A resumed run restarts its episode; a new seed keeps it from replaying old ones.
     env.set_seed(cfg.env.seed + counters["frames"])
 
     def save_checkpoint():
-        state = {
-            "config": OmegaConf.to_container(cfg),
-            "counters": dict(counters),
-            "loss": loss.state_dict(),
-            "policy": policy.state_dict(),
-            "world_model": None if world_model is None else world_model.state_dict(),
-            "optimizers": {name: opt.state_dict() for name, opt in optimizers.items()},
-            "rng": rng_state(),
-            "logger": None if logger is None else logger.state_dict(),
-        }
-        return checkpointer.save(state, rb)
+        return checkpoint.save(
+            counters["frames"],
+            config=OmegaConf.to_container(cfg),
+            counters=counters,
+            replay_buffer=rb,
+            logger={} if logger is None else logger.state_dict(),
+            **agent.state_components(),
+        )
 
-    def log(metrics: dict[str, float]) -> None:
-        if logger is not None:
-            for key, value in metrics.items():
-                logger.log_scalar(key, value, step=counters["frames"])
-
-    # compiled with compile.enabled
-    update_world_model, update_agent = make_update_steps(cfg, loss, wm_loss, optimizers, updater)
-
-    def world_model_step():
-        return update_world_model(rb.sample())
-
-    def agent_step(step_actor: bool):
-        return update_agent(rb.sample(), step_actor)
-
-    def guarded(collector):
-        """The collector's batches; a worker that raises or dies stops the run cleanly: the
-        state after the last complete batch is checkpointed and the error names the env."""
-        iterator = iter(collector)
-        while True:
-            try:
-                data = next(iterator)
-            except StopIteration:
-                return
-            except Exception as err:
-                if cfg.collector.backend == "direct":
-                    raise
-                where = save_checkpoint()
-                try:
-                    collector.shutdown()
-                except Exception:  # noqa: BLE001 (a dead worker may fail the shutdown too)
-                    logging.getLogger(__name__).warning("collector shutdown failed", exc_info=True)
-                raise CollectorFailure(
-                    f"a {cfg.collector.backend} collector worker running {cfg.env.name} failed "
-                    f"after frame {counters['frames']}: {type(err).__name__}: {err}. The run "
-                    f"stopped; checkpoint {where} holds everything up to that frame: resume "
-                    f"with resume={run_dir}"
-                ) from err
-            yield data
-
-    policy_delay = cfg.td3.policy_delay if algo.loss == "td3" else 1
-    start_frames = max(cfg.collector.init_random_frames, cfg.replay_buffer.batch_size)
-    if algo.model_based:
-        start_frames = max(start_frames, cfg.world_model.pretrain_frames)
-
-    def train_on_batch(n_frames: int) -> dict[str, torch.Tensor]:
-        acc = defaultdict(list)
-        if counters["frames"] < start_frames:
-            return acc
-        if algo.model_based and not counters["pretrained"]:
-            for _ in range(cfg.world_model.pretrain_updates):
-                world_model_step()
-            counters["pretrained"] = True
-        # utd_ratio updates per frame collected after the start
-        new_frames = min(n_frames, counters["frames"] - start_frames)
-        counters["update_budget"] += cfg.optim.utd_ratio * new_frames
-        n_updates = int(counters["update_budget"])
-        counters["update_budget"] -= n_updates
-        for _ in range(n_updates):
-            if algo.model_based and counters["updates"] % cfg.world_model.train_every == 0:
-                wm = world_model_step()
-                for key in ("transition_nll", "transition_mse", "reward_nll", "reward_mse"):
-                    acc[f"train/wm_{key}"].append(wm[key].detach())
-                acc["train/wm_termination_bce"].append(wm["termination_bce"].detach())
-            step_actor = counters["updates"] % policy_delay == 0
-            out = agent_step(step_actor)
-            counters["updates"] += 1
-            acc["train/loss_critic"].append(out["loss_qvalue"].detach())
-            if step_actor:
-                acc["train/loss_actor"].append(out["loss_actor"].detach())
-            if "alpha" in out.keys():  # noqa: SIM118 (a TensorDict)
-                acc["train/sac_alpha"].append(out["alpha"].detach())
-            if algo.model_based:
-                diag = loss.value_estimator.diagnostics
-                acc["train/alpha"].append(diag["rave_alpha"].mean())
-                for h, w in enumerate(diag["rave_horizon_weights"].mean(0).unbind(-1)):
-                    acc[f"train/horizon_weight_h{h}"].append(w)
-                for h, v in enumerate(diag["rave_horizon_variance"].mean(0).unbind(-1)):
-                    acc[f"train/candidate_variance_h{h}"].append(v)
-        return acc
-
+    # Main loop
     total = cfg.collector.total_frames
     last_eval = {}
     pbar = tqdm.tqdm(
         total=total, initial=counters["frames"], unit="frames", disable=not cfg.logger.progress_bar
     )
-    start = time.perf_counter()
-    frames_at_start = counters["frames"]
+    start, frames_at_start = time.perf_counter(), counters["frames"]
     collector = None
-    with _StopRequest() as stop:
+    with StopRequest() as stop:
         if counters["frames"] < total:
-            collector = make_collector(cfg, env, policy, device, counters["frames"])
+            collector = make_collector(cfg, env, agent.policy, device, counters["frames"])
             synced_at = counters["updates"]  # the workers start with the current weights
             t_collect = time.perf_counter()
-            for data in guarded(collector):
+            for data in guarded_batches(
+                collector, cfg, save_checkpoint, lambda: counters["frames"]
+            ):
                 data = data.reshape(-1)
                 collect_s = time.perf_counter() - t_collect
                 bad = check_finite(data)
@@ -260,14 +130,15 @@ def train(cfg: DictConfig, run_dir: str, probe: Probe | None = None) -> dict[str
                         f"rerun with resume={run_dir}"
                     )
                 rb.extend(data)
-                if world_model is not None:
-                    world_model.update_normalizers_from(data)
+                if agent.world_model_trainer is not None:
+                    agent.world_model_trainer.extend(data)
                 counters["frames"] += data.numel()
+
                 t_update = time.perf_counter()
-                acc = train_on_batch(data.numel())
+                acc = update_on_batch(cfg, agent, update_agent, rb, counters, data.numel())
                 update_s = time.perf_counter() - t_update
                 if counters["updates"] - synced_at >= cfg.collector.weight_sync_every:
-                    push_policy_weights(collector, policy)
+                    push_policy_weights(collector, agent.policy)
                     synced_at = counters["updates"]
 
                 metrics = {k: torch.stack(v).mean().item() for k, v in acc.items()}
@@ -286,14 +157,15 @@ def train(cfg: DictConfig, run_dir: str, probe: Probe | None = None) -> dict[str
                 if frames_now >= counters["next_eval"] or frames_now >= total:
                     t_eval = time.perf_counter()
                     eval_env.set_seed(cfg.env.seed + 1_000_003 + frames_now)
-                    last_eval = evaluate(eval_env, actor, cfg.eval.episodes)
+                    last_eval = evaluate(eval_env, agent.actor, cfg.eval.episodes)
                     metrics.update(last_eval)
                     metrics["time/eval_s"] = time.perf_counter() - t_eval
                     while counters["next_eval"] <= frames_now:
                         counters["next_eval"] += cfg.eval.interval
-                if probe is not None:
-                    metrics.update(probe(frames_now, loss))
-                log(metrics)
+                metrics.update(q_at_points(cfg, agent))
+                if logger is not None:
+                    for key, value in metrics.items():
+                        logger.log_scalar(key, value, step=frames_now)
                 pbar.update(data.numel())
                 if last_eval:
                     pbar.set_postfix(eval_return=f"{last_eval['eval/return']:.1f}")
@@ -316,7 +188,7 @@ def train(cfg: DictConfig, run_dir: str, probe: Probe | None = None) -> dict[str
         return last_eval
     if not last_eval:  # a run resumed from its final checkpoint
         eval_env.set_seed(cfg.env.seed + 1_000_003 + counters["frames"])
-        last_eval = evaluate(eval_env, actor, cfg.eval.episodes)
+        last_eval = evaluate(eval_env, agent.actor, cfg.eval.episodes)
     elapsed = time.perf_counter() - start
     print(
         f"{cfg.algorithm} on {cfg.env.name}, seed {cfg.env.seed}: {counters['frames']} frames, "
@@ -332,11 +204,75 @@ def train(cfg: DictConfig, run_dir: str, probe: Probe | None = None) -> dict[str
     return {**last_eval, "frames": counters["frames"], "updates": counters["updates"]}
 
 
+def update_on_batch(
+    cfg: DictConfig, agent: Agent, update_agent, rb: ReplayBuffer, counters: dict, n_frames: int
+) -> dict[str, list[torch.Tensor]]:
+    """The updates a batch of ``n_frames`` new frames pays for (``optim.utd_ratio`` per
+    frame once the learning starts); returns the training metrics of each update."""
+    acc = defaultdict(list)
+    start_frames = max(cfg.collector.init_random_frames, cfg.replay_buffer.batch_size)
+    wm_trainer = agent.world_model_trainer
+    if wm_trainer is not None:
+        start_frames = max(start_frames, cfg.world_model.pretrain_frames)
+    if counters["frames"] < start_frames:
+        return acc
+    if wm_trainer is not None:
+        wm_trainer.pretrain(rb)  # once, as soon as F frames are stored
+    new_frames = min(n_frames, counters["frames"] - start_frames)
+    counters["update_budget"] += cfg.optim.utd_ratio * new_frames
+    n_updates = int(counters["update_budget"])
+    counters["update_budget"] -= n_updates
+    policy_delay = cfg.td3.policy_delay if agent.algorithm.loss == "td3" else 1
+    critic_key = critic_loss_key(agent.loss)
+    for _ in range(n_updates):
+        wm = None if wm_trainer is None else wm_trainer.step(rb)
+        if wm is not None:
+            for key in ("transition_nll", "transition_mse", "reward_nll", "reward_mse"):
+                acc[f"train/wm_{key}"].append(wm[key])
+            acc["train/wm_termination_bce"].append(wm["termination_bce"])
+        step_actor = counters["updates"] % policy_delay == 0
+        out = update_agent(rb.sample(), step_actor)
+        counters["updates"] += 1
+        acc["train/loss_critic"].append(out[critic_key].detach())
+        if step_actor:
+            acc["train/loss_actor"].append(out["loss_actor"].detach())
+        if "alpha" in out.keys():  # noqa: SIM118 (a TensorDict)
+            acc["train/sac_alpha"].append(out["alpha"].detach())
+        if agent.algorithm.model_based:
+            estimator = agent.loss.value_estimator
+            diag, keys = estimator.diagnostics, estimator.tensor_keys
+            acc["train/alpha"].append(diag[keys.alpha].mean())
+            for h, w in enumerate(diag[keys.horizon_weights].mean(0).unbind(-1)):
+                acc[f"train/horizon_weight_h{h}"].append(w)
+            for h, v in enumerate(diag[keys.horizon_variance].mean(0).unbind(-1)):
+                acc[f"train/candidate_variance_h{h}"].append(v)
+    return acc
+
+
+@torch.no_grad()
+def q_at_points(cfg: DictConfig, agent: Agent) -> dict[str, float]:
+    """``q/<name>``: the critics' mean Q at each ``logger.q_points`` entry
+    (``name: [observation, action]``), in environment reward units."""
+    from tensordict import TensorDict
+
+    out = {}
+    device = agent.loss.actor_network_params.device
+    for name, (obs, action) in (cfg.logger.q_points or {}).items():
+        td = TensorDict(
+            observation=torch.tensor([list(obs)], dtype=torch.float32),
+            action=torch.tensor([list(action)], dtype=torch.float32),
+            batch_size=[1],
+            device=device,
+        )
+        out[f"q/{name}"] = critic_mean(agent.loss, td).item() / cfg.env.reward_scale
+    return out
+
+
 @hydra.main(config_path=".", config_name="config", version_base="1.3")
 def main(cfg: DictConfig) -> float:
     run_dir = HydraConfig.get().runtime.output_dir
     if cfg.resume:
-        cfg = config_for_resume(cfg.resume, list(HydraConfig.get().overrides.task))
+        cfg = config_for_resume(cfg.resume, list(HydraConfig.get().overrides.task), defaults())
     return train(cfg, run_dir)["eval/return"]
 
 

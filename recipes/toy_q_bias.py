@@ -5,75 +5,33 @@ python recipes/toy_q_bias.py                  # 4 methods x 2 noise levels x 4 s
 python recipes/toy_q_bias.py quick=true       # one short run per method and k (CI)
 
 Every run is an ordinary ``rave_mujoco.py`` training on ``RAVEToy-v0`` (overrides in
-``toy.yaml``); after each collector batch it records ``Q-hat(s_0, +1)`` and
-``Q-hat(s_0, -1)``, the mean over the learner's critics. The study writes ``toy_q_bias.png``
+``toy.yaml``), launched by the grid launcher of ``torchrl_rave.training.runs``; after each
+collector batch it logs ``q/plus`` and ``q/minus`` (``logger.q_points``): ``Q-hat(s_0, +1)``
+and ``Q-hat(s_0, -1)``, the mean over the learner's critics in reward units. The study writes ``toy_q_bias.png``
 (curves, seed spread, exact ground truth) and ``toy_q_bias.md`` (final estimates, truth,
 bias) into its output directory.
 """
 
 from __future__ import annotations
 
-import csv
-import os
-import sys
-from concurrent.futures import ProcessPoolExecutor
-from multiprocessing import get_context
 from pathlib import Path
 
 import hydra
 import numpy as np
-import torch
-from hydra import compose
 from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig
-from tensordict import TensorDict
 
-sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+from torchrl_rave.envs import ground_truth_q
+from torchrl_rave.training.runs import Cell, launch_grid, read_scalar
 
-from torchrl_rave.envs import ground_truth_q  # noqa: E402
-
+RECIPE = Path(__file__).resolve().parent / "rave_mujoco.py"
 ACTIONS = {"plus": 1.0, "minus": -1.0}
+# logger.q_points: Q-hat at s_0 = 0 for both actions, logged after every batch
+Q_POINTS = "logger.q_points={plus:[[0.0],[1.0]],minus:[[0.0],[-1.0]]}"
 
 
-class QProbe:
-    """Returns ``toy/q_plus`` and ``toy/q_minus``: the critics' mean Q at ``s_0 = 0``, in
-    environment reward units (the learner's scaled values divided by ``reward_scale``)."""
-
-    def __init__(self, reward_scale: float) -> None:
-        self.reward_scale = reward_scale
-
-    def __call__(self, frames: int, loss) -> dict[str, float]:
-        from utils import critic_mean
-
-        out = {}
-        with torch.no_grad():
-            for name, a in ACTIONS.items():
-                td = TensorDict(
-                    {"observation": torch.zeros(1, 1), "action": torch.full((1, 1), a)}, [1]
-                )
-                out[f"toy/q_{name}"] = critic_mean(loss, td).item() / self.reward_scale
-        return out
-
-
-def run_one(job: tuple[str, float, int, list[str], str]) -> str:
-    """One training run (in a worker process): returns its directory."""
-    torch.set_num_threads(1)
-    method, k, seed, overrides, run_dir = job
-    import rave_mujoco
-    from hydra import initialize_config_dir
-
-    with initialize_config_dir(
-        config_dir=os.path.dirname(os.path.abspath(__file__)), version_base="1.3"
-    ):
-        cfg = compose("config", overrides=overrides)
-    rave_mujoco.train(cfg, run_dir, probe=QProbe(cfg.env.reward_scale))
-    return run_dir
-
-
-def read_curve(run_dir: Path, method: str, name: str) -> tuple[np.ndarray, np.ndarray]:
-    with open(run_dir / method / "scalars" / "toy" / f"q_{name}.csv") as f:
-        rows = np.array([[float(x) for x in row] for row in csv.reader(f)])
-    return rows[:, 0], rows[:, 1]
+def read_curve(run_dir: Path, name: str) -> tuple[np.ndarray, np.ndarray]:
+    return read_scalar(run_dir, f"q/{name}")
 
 
 def summarise(out: Path, cfg: DictConfig, frames: int, seeds: list[int]) -> str:
@@ -98,9 +56,7 @@ def summarise(out: Path, cfg: DictConfig, frames: int, seeds: list[int]) -> str:
         for method in cfg.methods:
             finals = {}
             for row, name in enumerate(ACTIONS):
-                curves = [
-                    read_curve(out / f"k{k:g}" / method / f"seed{s}", method, name) for s in seeds
-                ]
+                curves = [read_curve(out / f"k{k:g}" / method / f"seed{s}", name) for s in seeds]
                 steps = curves[0][0]
                 values = np.stack([c[1] for c in curves])
                 ax = axes[row, col]
@@ -137,25 +93,29 @@ def main(cfg: DictConfig) -> str:
         )
     frames, seeds = (600, list(cfg.seeds)[:1]) if cfg.quick else (cfg.frames, list(cfg.seeds))
     out = Path(cfg.out or HydraConfig.get().runtime.output_dir)
-    jobs = []
-    for k in cfg.noise:
-        for method in cfg.methods:
-            for seed in seeds:
-                run_dir = out / f"k{k:g}" / method / f"seed{seed}"
-                overrides = [
-                    *cfg.train,
-                    f"env.kwargs={{k:{k}}}",
-                    f"algorithm={method}",
-                    f"env.seed={seed}",
-                    f"collector.total_frames={frames}",
-                    f"eval.interval={frames}",
-                    f"checkpoint.interval={frames}",
-                ]
-                jobs.append((method, k, seed, overrides, str(run_dir)))
-    print(f"{len(jobs)} runs of {frames} frames, {cfg.jobs} at a time, into {out}")
-    with ProcessPoolExecutor(cfg.jobs, mp_context=get_context("spawn")) as pool:
-        for done in pool.map(run_one, jobs):
-            print("done:", done)
+    cells = [
+        Cell(
+            out / f"k{k:g}" / method / f"seed{seed}",
+            frames,
+            (
+                *cfg.train,
+                Q_POINTS,
+                f"env.kwargs={{k:{k}}}",
+                f"algorithm={method}",
+                f"env.seed={seed}",
+                f"eval.interval={frames}",
+                f"checkpoint.interval={frames}",
+            ),
+        )
+        for k in cfg.noise
+        for method in cfg.methods
+        for seed in seeds
+    ]
+    print(f"{len(cells)} runs of {frames} frames, {cfg.jobs} at a time, into {out}")
+    codes = launch_grid(RECIPE, cells, cfg.jobs)
+    failed = [c.run_dir for c, code in codes.items() if code != 0]
+    if failed:
+        raise SystemExit(f"{len(failed)} run(s) failed; see {failed[0] / 'stdout.log'}")
     table = summarise(out, cfg, frames, seeds)
     print(table)
     print(f"figure: {out / 'toy_q_bias.png'}")

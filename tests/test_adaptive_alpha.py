@@ -5,7 +5,7 @@ from __future__ import annotations
 import pytest
 import torch
 from tensordict import TensorDict
-from test_value_expansion import actor_net, batch, critic_net, ddpg_loss, world_model
+from test_value_expansion import actor_net, batch, critic_net, ensemble_loss, world_model
 from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
 
 from torchrl_rave import AdaptiveAlpha, RAVEValueEstimator, ValueExpansionEstimator
@@ -21,7 +21,7 @@ class TestAdaptiveAlpha:
             target = (nxt - obs - wm.delta_norm.mean) / wm.delta_norm.std
             err = ((mean.mean(0) - target) ** 2).sum(-1)
         expected = (1.5 * (1 - err / 2.0)).clamp_min(0)
-        out = AdaptiveAlpha(wm, alpha=1.5, error_scale=2.0)(data)
+        out = AdaptiveAlpha(wm, alpha=1.5, alpha_error_scale=2.0)(data)
         torch.testing.assert_close(out["rave_alpha"].squeeze(-1), expected)
 
     def test_perfect_model_gives_full_alpha_and_bad_model_zero(self):
@@ -47,7 +47,7 @@ class TestAdaptiveAlpha:
         rb.extend(batch(B=50))
         sample = rb.sample()
         assert sample["rave_alpha"].shape == (16, 1)
-        loss = ddpg_loss()
+        loss = ensemble_loss()
         # "adaptive" computes the same alpha itself; "tensordict" reads the transform's
         torch.manual_seed(0)
         adaptive = RAVEValueEstimator.for_loss(loss, world_model=wm, gamma=0.9, alpha=1.5)
@@ -77,16 +77,16 @@ class TestAdaptiveAlpha:
         )
         data = batch(B=6)
         const = ValueExpansionEstimator(alpha=0.8, **kw).value_estimate(data.clone())
-        data["rave_alpha"] = torch.full((6, 1), 0.8)
+        data["value_expansion_alpha"] = torch.full((6, 1), 0.8)
         read = ValueExpansionEstimator(alpha_mode="tensordict", **kw).value_estimate(data)
         torch.testing.assert_close(read, const)
         # and a larger alpha gives a lower (more pessimistic) target
-        data["rave_alpha"] = torch.full((6, 1), 2.0)
+        data["value_expansion_alpha"] = torch.full((6, 1), 2.0)
         lower = ValueExpansionEstimator(alpha_mode="tensordict", **kw).value_estimate(data)
         assert (lower <= const + 1e-6).all() and (lower < const - 1e-6).any()
 
     @pytest.mark.parametrize(
-        "kw,match", [({"alpha": -1.0}, "alpha"), ({"error_scale": 0.0}, "error_scale")]
+        "kw,match", [({"alpha": -1.0}, "alpha"), ({"alpha_error_scale": 0.0}, "alpha_error_scale")]
     )
     def test_bad_arguments(self, kw, match):
         with pytest.raises(ValueError, match=match):

@@ -4,14 +4,11 @@ from __future__ import annotations
 
 import csv
 import re
-import sys
 from pathlib import Path
 
+import alpha_ablation
 import pytest
-
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "recipes"))
-import alpha_ablation  # noqa: E402
-from test_recipe import TINY  # noqa: E402
+from test_recipe import TINY
 
 
 def logged(path: Path, metric: str) -> list[float]:

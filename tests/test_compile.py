@@ -3,19 +3,18 @@ parameters as the eager steps, and a compiled run trains end to end."""
 
 from __future__ import annotations
 
-import sys
 from pathlib import Path
 
 import pytest
+import rave_mujoco
 import torch
+import update_throughput as bench
+from test_recipe import TINY, make_cfg
+
+from torchrl_rave.training.agent import make_agent, make_env
+from torchrl_rave.training.config import check_config
 
 ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT / "benchmarks"))
-sys.path.insert(0, str(ROOT / "recipes"))
-import rave_mujoco  # noqa: E402
-import update_throughput as bench  # noqa: E402
-import utils as recipe_utils  # noqa: E402
-from test_recipe import TINY, make_cfg  # noqa: E402
 
 SMALL = [
     "replay_buffer.batch_size=32",
@@ -53,8 +52,9 @@ def test_compiled_updates_match_eager(algorithm):
 
 
 def test_compiled_run_trains(monkeypatch, tmp_path):
-    """The recipe's ``train`` honours ``compile.enabled``: both update steps go through
-    ``torch.compile`` (DDPG keeps this cheap; RAVE's compiled steps are checked above)."""
+    """The recipe's ``train`` honours ``compile.enabled``: the agent's update goes through
+    ``torch.compile`` (DDPG keeps this cheap), and so does the world-model trainer's step
+    for model-based algorithms (RAVE's compiled steps are checked above)."""
     compiled = []
     real = torch.compile
 
@@ -65,13 +65,29 @@ def test_compiled_run_trains(monkeypatch, tmp_path):
     monkeypatch.setattr(torch, "compile", counting)
     cfg = make_cfg(*TINY, "algorithm=ddpg", "compile.enabled=true")
     result = rave_mujoco.train(cfg, str(tmp_path))
-    assert compiled == [("world_model_step", {"mode": None}), ("agent_step", {"mode": None})]
+    assert compiled == [("agent_step", {"mode": None})]
     assert result["frames"] == 400
     assert result["updates"] == 30  # utd 0.1 x the 300 frames after init_random_frames
+    compiled.clear()
+    rave = make_cfg(*TINY, "algorithm=rave", "compile.enabled=true", "compile.mode=max-autotune")
+    env = make_env(rave, torch.device("cpu"))
+    make_agent(rave, env)  # compiling happens at the first call: nothing runs here
+    assert compiled == [("_update_eager", {"mode": "max-autotune"})]
 
 
 def test_bad_compile_settings_are_refused():
     with pytest.raises(ValueError, match="config key compile.mode='fastest'"):
-        recipe_utils.check_config(make_cfg(*TINY, "compile.mode=fastest"))
+        check_config(make_cfg(*TINY, "compile.mode=fastest"))
     with pytest.raises(ValueError, match="config key compile.enabled"):
-        recipe_utils.check_config(make_cfg(*TINY, "compile.enabled=maybe"))
+        check_config(make_cfg(*TINY, "compile.enabled=maybe"))
+
+
+def test_finite_checks_compile_without_a_graph_break():
+    """The library's NaN checks assert on device under torch.compile (a host read-back
+    would break the graph); the error still names the entry."""
+    from torchrl_rave._checks import get_checked
+
+    double = torch.compile(lambda d: get_checked(d, "x", 3) * 2, fullgraph=True)
+    torch.testing.assert_close(double({"x": torch.ones(2, 3)}), torch.full((2, 3), 2.0))
+    with pytest.raises(RuntimeError, match="entry 'x' holds NaN"):
+        double({"x": torch.tensor([[1.0, float("nan"), 0.0]])})

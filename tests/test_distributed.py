@@ -7,17 +7,18 @@ checkpoint."""
 from __future__ import annotations
 
 import os
-import sys
 from pathlib import Path
 
 import pytest
+import rave_mujoco
 import torch
 from tensordict import TensorDict
+from test_recipe import TINY, make_cfg
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "recipes"))
-import rave_mujoco  # noqa: E402
-import utils as recipe_utils  # noqa: E402
-from test_recipe import TINY, make_cfg  # noqa: E402
+from torchrl_rave.training.agent import make_actor, make_env
+from torchrl_rave.training.checkpoint import RunCheckpoint
+from torchrl_rave.training.collect import CollectorFailure, make_collector, push_policy_weights
+from torchrl_rave.training.config import check_config
 
 TESTS = Path(__file__).resolve().parent
 
@@ -48,10 +49,10 @@ def backend(request):
 
 def test_frames_from_every_worker_and_weight_push(backend):
     cfg = make_cfg(*TINY, *backend, "algorithm=rave")
-    algo = recipe_utils.check_config(cfg)
-    env = recipe_utils.make_env(cfg, torch.device("cpu"))
-    _, policy = recipe_utils.make_actor(cfg, env, algo)
-    collector = recipe_utils.make_collector(cfg, env, policy, torch.device("cpu"))
+    algo = check_config(cfg)
+    env = make_env(cfg, torch.device("cpu"))
+    _, policy = make_actor(cfg, env, algo)
+    collector = make_collector(cfg, env, policy, torch.device("cpu"))
 
     def assert_workers_hold(weights: TensorDict) -> None:
         remotes = collector.get_distant_attr("policy")
@@ -86,7 +87,7 @@ def test_frames_from_every_worker_and_weight_push(backend):
             # its workers read every change at once; the push then only synchronises
             assert all(p.is_shared() for p in policy.parameters())
             assert_workers_hold(after)
-        recipe_utils.push_policy_weights(collector, policy)
+        push_policy_weights(collector, policy)
         assert_workers_hold(after)
     finally:
         collector.shutdown()
@@ -104,9 +105,7 @@ def test_rave_trains_with_two_workers(backend, tmp_path):
 @pytest.mark.parametrize("env_id", ["FailingPendulum-v0", "DyingPendulum-v0"])
 def test_failing_worker_stops_with_a_checkpoint(backend, env_id, tmp_path):
     cfg = make_cfg(*TINY, *backend, "algorithm=ddpg", f"env.name=failing_env:{env_id}")
-    with pytest.raises(
-        recipe_utils.CollectorFailure, match=rf"{env_id} failed after frame 200: "
-    ) as failure:
+    with pytest.raises(CollectorFailure, match=rf"{env_id} failed after frame 200: ") as failure:
         rave_mujoco.train(cfg, str(tmp_path))
     cause = str(failure.value.__cause__)
     if backend[0].endswith("process"):
@@ -116,27 +115,23 @@ def test_failing_worker_stops_with_a_checkpoint(backend, env_id, tmp_path):
         assert "simulated simulator crash at step 150" in cause
     else:
         assert "actor died" in cause
-    state = torch.load(
-        recipe_utils.Checkpointer(tmp_path).latest() / "state.pt", weights_only=False
-    )
+    counters = RunCheckpoint(tmp_path).read("counters")
     # each worker collects 50 frames per batch and fails on its 150th step: two whole
     # batches made it into the buffer and the checkpoint
-    assert state["counters"]["frames"] == 200
+    assert counters["frames"] == 200
     # DDPG updates start after init_random_frames (100): utd 0.1 x 100 frames
-    assert state["counters"]["updates"] == 10
+    assert counters["updates"] == 10
 
 
 def test_bad_worker_settings_are_refused():
     with pytest.raises(ValueError, match="collector.num_workers.*backend=process or ray"):
-        recipe_utils.check_config(make_cfg(*TINY, "collector.num_workers=2"))
+        check_config(make_cfg(*TINY, "collector.num_workers=2"))
     with pytest.raises(ValueError, match="frames_per_batch.*multiple of collector.num_workers"):
-        recipe_utils.check_config(
-            make_cfg(*TINY, "collector.backend=ray", "collector.num_workers=3")
-        )
+        check_config(make_cfg(*TINY, "collector.backend=ray", "collector.num_workers=3"))
     with pytest.raises(ValueError, match="collector.backend"):
-        recipe_utils.check_config(make_cfg(*TINY, "collector.backend=threads"))
+        check_config(make_cfg(*TINY, "collector.backend=threads"))
     with pytest.raises(ValueError, match="collector.weight_sync_every"):
-        recipe_utils.check_config(make_cfg(*TINY, "collector.weight_sync_every=0"))
+        check_config(make_cfg(*TINY, "collector.weight_sync_every=0"))
     ray = ["collector.backend=ray", "collector.num_workers=2"]
     for override, key in [
         ("ray.worker_cpus=0", "ray.worker_cpus"),
@@ -145,15 +140,15 @@ def test_bad_worker_settings_are_refused():
         ("ray.worker_resources={actors:0}", "ray.worker_resources"),
     ]:
         with pytest.raises(ValueError, match=rf"config key {key}="):
-            recipe_utils.check_config(make_cfg(*TINY, *ray, override))
+            check_config(make_cfg(*TINY, *ray, override))
     # more workers than a local instance has CPUs would wait forever
     too_many = ["collector.backend=ray", "collector.num_workers=4", "ray.num_cpus=2"]
     with pytest.raises(ValueError, match=r"ray.worker_cpus=1 .* = 4 CPU <= the 2 CPU of"):
-        recipe_utils.check_config(make_cfg(*TINY, *too_many))
-    recipe_utils.check_config(make_cfg(*TINY, *too_many, "ray.worker_cpus=0.5"))  # fits
+        check_config(make_cfg(*TINY, *too_many))
+    check_config(make_cfg(*TINY, *too_many, "ray.worker_cpus=0.5"))  # fits
     # a resource no node has
     with pytest.raises(ValueError, match=r"ray.worker_resources.* = 2 actors <= the 0 actors"):
-        recipe_utils.check_config(make_cfg(*TINY, *ray, "ray.worker_resources={actors:1}"))
+        check_config(make_cfg(*TINY, *ray, "ray.worker_resources={actors:1}"))
 
 
 def test_ray_backend_without_ray_names_the_fix(monkeypatch):
@@ -166,9 +161,7 @@ def test_ray_backend_without_ray_names_the_fix(monkeypatch):
     with pytest.raises(
         ValueError, match=r"needs the 'ray' package: pip install 'torchrl-rave\[ray\]'"
     ):
-        recipe_utils.check_config(
-            make_cfg(*TINY, "collector.backend=ray", "collector.num_workers=2")
-        )
+        check_config(make_cfg(*TINY, "collector.backend=ray", "collector.num_workers=2"))
 
 
 @pytest.mark.parametrize(("every", "pushed_at"), [(1, [200, 300, 400]), (15, [300])])
@@ -182,15 +175,18 @@ def test_weights_are_pushed_once_enough_updates_are_new(every, pushed_at, monkey
         events.append("push")
         real(collector, policy)
 
-    def probe(frames, loss):  # called after each batch's updates and push
-        events.append(frames)
-        return {}
+    real_update = rave_mujoco.update_on_batch
+
+    def update(cfg, agent, step, rb, counters, n_frames):  # each batch, before its push
+        events.append(counters["frames"])
+        return real_update(cfg, agent, step, rb, counters, n_frames)
 
     monkeypatch.setattr(rave_mujoco, "push_policy_weights", counting)
+    monkeypatch.setattr(rave_mujoco, "update_on_batch", update)
     cfg = make_cfg(*TINY, "algorithm=ddpg", f"collector.weight_sync_every={every}")
-    assert rave_mujoco.train(cfg, str(tmp_path), probe=probe)["updates"] == 30
+    assert rave_mujoco.train(cfg, str(tmp_path))["updates"] == 30
     batches = [e for e in events if e != "push"]
     assert batches == [100, 200, 300, 400]
-    # the batch a push belongs to is the next probe call after it
-    pushes = [events[k + 1] for k, e in enumerate(events) if e == "push"]
+    # the batch a push belongs to is the update call just before it
+    pushes = [events[k - 1] for k, e in enumerate(events) if e == "push"]
     assert pushes == pushed_at

@@ -1,4 +1,5 @@
-"""EnsembleDDPGLoss: DDPG's losses by hand, and the fast path equal to TD3Loss's own path."""
+"""EnsembleDDPGLoss: DDPG's losses by hand, DDPGLoss's interface, and the fast path equal
+to the TensorDict + vmap path."""
 
 from __future__ import annotations
 
@@ -7,7 +8,7 @@ import torch
 from tensordict import TensorDict
 from test_value_expansion import A, actor_net, batch, critic_net, perturb, world_model
 from torchrl.data import Bounded
-from torchrl.objectives import SoftUpdate, ValueEstimators
+from torchrl.objectives import SoftUpdate, TD3Loss, ValueEstimators
 
 from torchrl_rave import (
     EnsembleDDPGLoss,
@@ -21,16 +22,10 @@ GAMMA = 0.9
 
 def make_loss(K, fast_calls=True, estimator=None):
     torch.manual_seed(3)
-    loss = EnsembleDDPGLoss(
-        actor_net(),
-        critic_net(),
-        action_spec=Bounded(-1, 1, (A,)),
-        num_qvalue_nets=K,
-        fast_calls=fast_calls,
-    )
+    loss = EnsembleDDPGLoss(actor_net(), critic_net(), num_value_nets=K, fast_calls=fast_calls)
     SoftUpdate(loss, tau=0.05)
     perturb(loss.target_actor_network_params)
-    perturb(loss.target_qvalue_network_params)
+    perturb(loss.target_value_network_params)
     if estimator in ("rave", "steve"):
         cls = RAVEValueEstimator if estimator == "rave" else STEVEEstimator
         loss.make_value_estimator(
@@ -44,10 +39,10 @@ def make_loss(K, fast_calls=True, estimator=None):
 def q_by_hand(loss, params, obs, action):
     """``[K, B]`` by a loop over the critic members."""
     out = []
-    for k in range(loss.num_qvalue_nets):
+    for k in range(loss.num_value_nets):
         td = TensorDict({"observation": obs, "action": action}, obs.shape[:-1])
-        with params[k].to_module(loss.qvalue_network):
-            out.append(loss.qvalue_network(td)["state_action_value"].squeeze(-1))
+        with params[k].to_module(loss.value_network):
+            out.append(loss.value_network(td)["state_action_value"].squeeze(-1))
     return torch.stack(out)
 
 
@@ -66,36 +61,35 @@ def test_losses_by_hand(K, fast_calls):
         next_obs = data["next", "observation"]
         next_q = q_by_hand(
             loss,
-            loss.target_qvalue_network_params,
+            loss.target_value_network_params,
             next_obs,
             act_by_hand(loss, loss.target_actor_network_params, next_obs),
         )
         not_done = 1.0 - data["next", "terminated"].squeeze(-1).float()
         target = data["next", "reward"].squeeze(-1) + GAMMA * not_done * next_q.min(0)[0]
-        q = q_by_hand(loss, loss.qvalue_network_params, data["observation"], data["action"])
+        q = q_by_hand(loss, loss.value_network_params, data["observation"], data["action"])
         expected_critic = ((q - target) ** 2).sum(0).mean()
         pi = act_by_hand(loss, loss.actor_network_params, data["observation"])
-        expected_actor = -q_by_hand(loss, loss.qvalue_network_params, data["observation"], pi)
+        expected_actor = -q_by_hand(loss, loss.value_network_params, data["observation"], pi)
         expected_actor = expected_actor.mean(0).mean()
-    torch.testing.assert_close(out["loss_qvalue"], expected_critic)
+    torch.testing.assert_close(out["loss_value"], expected_critic)
     torch.testing.assert_close(out["loss_actor"], expected_actor)
 
 
-# STEVE's mean rollouts: TD3Loss's path draws (zero-scaled) smoothing noise first, which
-# would shift RAVE's sampled rollouts between the two paths.
-@pytest.mark.parametrize("estimator", ["td0", "steve"])
-def test_fast_path_matches_td3_path_with_gradients(estimator):
+@pytest.mark.parametrize("estimator", ["td0", "steve", "rave"])
+def test_fast_path_matches_vmap_path_with_gradients(estimator):
     grads, losses = {}, {}
     for fast in (True, False):
         loss = make_loss(4, fast, estimator)
+        torch.manual_seed(5)  # the same sampled rollouts for RAVE
         out = loss(batch(B=12, terminal=(0,)))
-        (out["loss_qvalue"] + out["loss_actor"]).backward()
-        losses[fast] = (out["loss_qvalue"].detach(), out["loss_actor"].detach())
+        (out["loss_value"] + out["loss_actor"]).backward()
+        losses[fast] = (out["loss_value"].detach(), out["loss_actor"].detach())
         grads[fast] = [
             p.grad.clone()
             for p in (
                 *loss.actor_network_params.values(True, True),
-                *loss.qvalue_network_params.values(True, True),
+                *loss.value_network_params.values(True, True),
             )
         ]
     torch.testing.assert_close(losses[True], losses[False])
@@ -107,31 +101,85 @@ def test_actor_loss_leaves_critics_alone():
     loss = make_loss(2)
     out = loss(batch(B=6))
     out["loss_actor"].backward()
-    assert all(p.grad is None for p in loss.qvalue_network_params.values(True, True))
+    assert all(p.grad is None for p in loss.value_network_params.values(True, True))
     assert all(p.grad is not None for p in loss.actor_network_params.values(True, True))
 
 
-def test_fast_path_is_used_and_skips_the_unused_td3_target():
-    loss = make_loss(2, estimator="rave")
-    out = loss(batch(B=4))
-    assert loss._fast()
-    # value expansion computes its own target: no TD(0) next-state value is formed
-    assert "next_state_value" not in out.keys()  # noqa: SIM118 (a TensorDict)
-    assert "next_state_value" in make_loss(2)(batch(B=4)).keys()  # noqa: SIM118
+def test_fast_path_is_used_and_skips_the_unused_td0_target(monkeypatch):
+    calls = []
+    for estimator in ("rave", "td0"):
+        loss = make_loss(2, estimator=estimator)
+        assert loss._calls.get("critic", loss.value_network, stacked=True) is not None
+        original = loss._actions
+        count = []
+        monkeypatch.setattr(loss, "_actions", lambda *a, c=count, f=original: c.append(1) or f(*a))
+        loss(batch(B=4))
+        calls.append(len(count))
+    # value expansion computes its own target: only the actor loss runs the loss's actor;
+    # TD(0) also runs the target actor on the next observations
+    assert calls == [1, 2]
+
+
+def test_ddpg_interface():
+    """What a DDPGLoss script touches: names, outputs, the two loss methods."""
+    loss = make_loss(3)
+    data = batch(B=5)
+    out = loss(data)
+    assert {"loss_actor", "loss_value", "pred_value", "target_value"} <= set(out.keys())
+    assert out["pred_value"].shape == (3, 5) and out["target_value"].shape == (5,)
+    assert data["td_error"].shape == (5,)  # for a prioritised buffer
+    loss_value, meta = loss.loss_value(data)
+    loss_actor, _ = loss.loss_actor(data)
+    torch.testing.assert_close(loss_value, out["loss_value"])
+    torch.testing.assert_close(loss_actor, out["loss_actor"])
+    assert loss.value_network_params.batch_size == (3,)
+    assert loss.target_value_network_params.batch_size == (3,)
+    with pytest.raises(ValueError, match="num_value_nets"):
+        EnsembleDDPGLoss(actor_net(), critic_net(), num_value_nets=0)
+
+
+@pytest.mark.parametrize("K", [1, 4])
+def test_members_initialised_as_td3_loss_does(K):
+    """The same seed gives TD3Loss's stacked critics (the recipe's numbers before the
+    DDPG-named loss came are kept) and independent members."""
+    torch.manual_seed(0)
+    ours = EnsembleDDPGLoss(actor_net(), critic_net(), num_value_nets=K)
+    torch.manual_seed(0)
+    theirs = TD3Loss(actor_net(), critic_net(), num_qvalue_nets=K, action_spec=Bounded(-1, 1, (A,)))
+    torch.testing.assert_close(ours.value_network_params.data, theirs.qvalue_network_params.data)
+    torch.testing.assert_close(ours.actor_network_params.data, theirs.actor_network_params.data)
+    if K > 1:
+        w = ours.value_network_params.get(("module", "0", "weight"))
+        assert not torch.equal(w[0], w[1])
 
 
 @pytest.mark.parametrize("K", [1, 3])
 def test_foreach_soft_update_matches_torchrl(K):
     ours, theirs = make_loss(K), make_loss(K)
-    before = ours.target_qvalue_network_params.clone()
+    before = ours.target_value_network_params.clone()
     updaters = [ForeachSoftUpdate(ours, tau=0.1), SoftUpdate(theirs, tau=0.1)]
     for step in range(3):
         for loss in (ours, theirs):
             torch.manual_seed(step)  # the same change of the online networks in both
             perturb(loss.actor_network_params)
-            perturb(loss.qvalue_network_params)
+            perturb(loss.value_network_params)
         for updater in updaters:
             updater.step()
-    assert not (ours.target_qvalue_network_params == before).all()
-    for name in ("target_actor_network_params", "target_qvalue_network_params"):
+    assert not (ours.target_value_network_params == before).all()
+    for name in ("target_actor_network_params", "target_value_network_params"):
         torch.testing.assert_close(getattr(ours, name), getattr(theirs, name), rtol=0, atol=1e-7)
+
+
+def test_summing_every_output_entry_gives_the_loss_gradients():
+    """Scripts that sum every entry of the loss output (TorchRL 0.14.1's sota DDPG does)
+    get the same gradients as loss_value + loss_actor: the metadata carry no graph."""
+    grads = []
+    for total in ("losses", "everything"):
+        loss = make_loss(2, estimator="steve")
+        out = loss(batch(B=8))
+        keys = [k for k in out.keys() if total == "everything" or k.startswith("loss_")]  # noqa: SIM118
+        sum(out[k].sum() for k in keys).backward()
+        grads.append([p.grad.clone() for p in loss.parameters() if p.grad is not None])
+    assert len(grads[0]) == len(grads[1]) > 0
+    for a, b in zip(*grads, strict=True):
+        torch.testing.assert_close(a, b)

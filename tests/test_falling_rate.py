@@ -3,14 +3,11 @@
 from __future__ import annotations
 
 import re
-import sys
 from pathlib import Path
 
+import falling_rate
 import pytest
-
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "recipes"))
-import falling_rate  # noqa: E402
-from test_recipe import TINY, make_cfg  # noqa: E402
+from test_recipe import TINY, make_cfg
 
 
 class TestWilson:

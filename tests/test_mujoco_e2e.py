@@ -8,9 +8,14 @@ from torchrl.collectors import Collector
 from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
 from torchrl.envs import DoubleToFloat, GymEnv, TransformedEnv
 from torchrl.modules import MLP, Actor, ValueOperator
-from torchrl.objectives import DDPGLoss, SoftUpdate, TD3Loss
+from torchrl.objectives import SoftUpdate, TD3Loss
 
-from torchrl_rave import RAVEValueEstimator, WorldModelEnsemble, WorldModelLoss
+from torchrl_rave import (
+    EnsembleDDPGLoss,
+    RAVEValueEstimator,
+    WorldModelEnsemble,
+    WorldModelEnsembleLoss,
+)
 
 
 @pytest.fixture(scope="module", params=["Hopper-v5", "HalfCheetah-v5"])
@@ -54,7 +59,7 @@ def test_world_model_and_rave_losses_on_mujoco(mujoco_batch):
     assert len(rb) == 400
     wm, actor, qvalue = build(env)
     wm.update_normalizers_from(rb[:])
-    wm_loss = WorldModelLoss(wm)
+    wm_loss = WorldModelEnsembleLoss(wm)
     opt = torch.optim.Adam(wm.parameters(), lr=1e-3)
     first = None
     for _ in range(30):
@@ -68,7 +73,7 @@ def test_world_model_and_rave_losses_on_mujoco(mujoco_batch):
 
     batch = rb.sample()
     for loss in (
-        DDPGLoss(actor, qvalue, delay_actor=True, delay_value=True),
+        EnsembleDDPGLoss(actor, qvalue, num_value_nets=4),
         TD3Loss(actor, qvalue, action_spec=env.action_spec, num_qvalue_nets=4),
     ):
         SoftUpdate(loss, tau=0.01)
@@ -84,8 +89,8 @@ def test_world_model_and_rave_losses_on_mujoco(mujoco_batch):
         grads = [p.grad for p in loss.parameters() if p.grad is not None]
         assert grads and all(torch.isfinite(g).all() for g in grads)
         assert any(g.abs().sum() > 0 for g in grads)
-        # DDPGLoss hands the batch itself to the estimator; TD3Loss a shallow copy
-        diag = td if isinstance(loss, DDPGLoss) else loss.value_estimator.diagnostics
+        # both losses hand the estimator a shallow copy of the batch
+        diag = loss.value_estimator.diagnostics
         assert diag["rave_horizon_weights"].shape == (64, 4)
         torch.testing.assert_close(diag["rave_horizon_weights"].sum(-1), torch.ones(64))
         assert ((diag["rave_alpha"] >= 0) & (diag["rave_alpha"] <= 1.5)).all()

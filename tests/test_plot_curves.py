@@ -2,14 +2,13 @@
 
 from __future__ import annotations
 
-import sys
 from pathlib import Path
 
 import numpy as np
+import plot_curves
 import pytest
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "recipes"))
-import plot_curves  # noqa: E402
+from torchrl_rave.training.runs import curves, parse_groups, read_scalar
 
 
 def fake_run(root: Path, exp: str, rows: list[tuple[int, float]]) -> Path:
@@ -45,7 +44,7 @@ class TestPlotCurves:
         fake_run(tmp_path / "s0", "x", [(100, 1.0), (200, 2.0), (300, 3.0)])
         # a resumed run logged step 200 twice; the later value counts; step 300 missing
         fake_run(tmp_path / "s1", "x", [(100, 5.0), (200, 6.0), (200, 7.0)])
-        data = plot_curves.curves({"x": [tmp_path / "s0", tmp_path / "s1"]}, "eval/return")
+        data = curves({"x": [tmp_path / "s0", tmp_path / "s1"]}, "eval/return")
         steps, values = data["x"]
         assert steps.tolist() == [100, 200]
         np.testing.assert_array_equal(values, [[1.0, 2.0], [5.0, 7.0]])
@@ -53,9 +52,9 @@ class TestPlotCurves:
 
     def test_clear_errors(self, tmp_path):
         with pytest.raises(ValueError, match="LABEL=PATTERN"):
-            plot_curves.parse_groups(["nolabel"])
+            parse_groups(["nolabel"])
         with pytest.raises(FileNotFoundError, match="no run directory matches"):
-            plot_curves.parse_groups([f"x={tmp_path}/missing*"])
+            parse_groups([f"x={tmp_path}/missing*"])
         (tmp_path / "empty").mkdir()
         with pytest.raises(FileNotFoundError, match="expected one"):
-            plot_curves.read_metric(tmp_path / "empty", "eval/return")
+            read_scalar(tmp_path / "empty", "eval/return")

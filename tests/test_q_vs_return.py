@@ -3,15 +3,11 @@
 from __future__ import annotations
 
 import re
-import sys
-from pathlib import Path
 
 import numpy as np
 import pytest
-
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "recipes"))
-import q_vs_return  # noqa: E402
-from test_recipe import TINY, make_cfg  # noqa: E402
+import q_vs_return
+from test_recipe import TINY, make_cfg
 
 
 class TestPieces:

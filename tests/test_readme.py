@@ -23,11 +23,19 @@ def test_use_rave_in_your_own_loss(capsys):
     torch.manual_seed(0)
     scope: dict = {}
     exec(compile(section_code("Use RAVE in your own TorchRL loss"), str(README), "exec"), scope)
-    loss, ddpg = scope["loss"], scope["ddpg"]
+    loss, wm_trainer = scope["loss"], scope["wm_trainer"]
     assert type(loss.value_estimator).__name__ == "RAVEValueEstimator"
-    assert type(ddpg.value_estimator).__name__ == "RAVEValueEstimator"
     weights = loss.value_estimator.diagnostics["rave_horizon_weights"]
     assert weights.shape == (256, 4)
     torch.testing.assert_close(weights.sum(-1), torch.ones(256))
-    assert torch.isfinite(scope["out"]["loss_qvalue"])
+    # 20 agent updates: 50 pretraining model steps once, then one per agent update
+    assert (wm_trainer.calls, wm_trainer.updates) == (20, 70)
+    assert int(scope["world_model"].obs_norm.count) == 750
+    assert torch.isfinite(scope["loss_value"]) and torch.isfinite(scope["loss_actor"])
     assert "tensor(" in capsys.readouterr().out
+    # the swap is short: the lines marked RAVE are all a DDPG script changes
+    assert sum("# RAVE" in line for line in section_code_lines()) <= 10
+
+
+def section_code_lines() -> list[str]:
+    return section_code("Use RAVE in your own TorchRL loss").splitlines()

@@ -14,15 +14,26 @@ from pathlib import Path
 import gymnasium as gym
 import numpy as np
 import pytest
+import rave_mujoco
 import torch
 from hydra import compose, initialize_config_dir
 from omegaconf import OmegaConf
 
-RECIPES = Path(__file__).resolve().parents[1] / "recipes"
-sys.path.insert(0, str(RECIPES))
+from torchrl_rave.training.agent import (
+    critic_params,
+    make_actor,
+    make_critic,
+    make_env,
+    make_loss,
+    make_replay_buffer,
+    make_world_model,
+)
+from torchrl_rave.training.checkpoint import RunCheckpoint
+from torchrl_rave.training.collect import NonFiniteEnvOutput
+from torchrl_rave.training.config import ALGORITHMS
+from torchrl_rave.training.runs import value_logged_at
 
-import rave_mujoco  # noqa: E402
-import utils as recipe_utils  # noqa: E402
+RECIPES = Path(__file__).resolve().parents[1] / "recipes"
 
 # Budgets of a few hundred frames: every code path runs, nothing is expected to learn.
 TINY = [
@@ -85,24 +96,22 @@ class TestAlgorithms:
             assert all(0.0 <= v <= 1.5 for _, v in alphas)
 
     def test_ddpg_has_one_critic_and_rave_four(self, tmp_path):
-        env = recipe_utils.make_env(make_cfg(*TINY), torch.device("cpu"))
+        env = make_env(make_cfg(*TINY), torch.device("cpu"))
         for name, k in [("ddpg", 1), ("rave", 4), ("td3", 2), ("sac", 2)]:
             cfg = make_cfg(f"algorithm={name}", *TINY)
-            algo = recipe_utils.ALGORITHMS[name]
-            actor, _ = recipe_utils.make_actor(cfg, env, algo)
-            wm = recipe_utils.make_world_model(cfg, env) if algo.model_based else None
-            loss, _ = recipe_utils.make_loss(
-                cfg, env, algo, actor, recipe_utils.make_critic(cfg, env), wm
-            )
-            assert loss.num_qvalue_nets == k
+            algo = ALGORITHMS[name]
+            actor, _ = make_actor(cfg, env, algo)
+            wm = make_world_model(cfg, env) if algo.model_based else None
+            loss, _ = make_loss(cfg, env, algo, actor, make_critic(cfg, env), wm)
+            assert critic_params(loss)[0].batch_size[0] == k
 
 
 class TestExploration:
     def test_actor_spans_the_action_box(self):
         # InvertedPendulum's actions lie in [-3, 3]; a tanh actor must reach past +-1.
         cfg = make_cfg(*TINY)
-        env = recipe_utils.make_env(cfg, torch.device("cpu"))
-        actor, _ = recipe_utils.make_actor(cfg, env, recipe_utils.ALGORITHMS["rave"])
+        env = make_env(cfg, torch.device("cpu"))
+        actor, _ = make_actor(cfg, env, ALGORITHMS["rave"])
         td = env.reset()
         with torch.no_grad():
             actor[0].module[-1].bias.fill_(100.0)  # saturate the tanh
@@ -110,8 +119,8 @@ class TestExploration:
 
     def test_epsilon_noise_rate_in_collected_data(self):
         cfg = make_cfg(*TINY, "exploration.epsilon=0.05", "exploration.sigma=0.5")
-        env = recipe_utils.make_env(cfg, torch.device("cpu"))
-        actor, policy = recipe_utils.make_actor(cfg, env, recipe_utils.ALGORITHMS["rave"])
+        env = make_env(cfg, torch.device("cpu"))
+        actor, policy = make_actor(cfg, env, ALGORITHMS["rave"])
         torch.manual_seed(0)
         td = env.reset().expand(4000).clone()
         from torchrl.envs.utils import ExplorationType, set_exploration_type
@@ -201,13 +210,12 @@ class TestCheckpoints:
         # the policy is random for the first frames, so make episodes long with many
         # resets impossible to avoid: count steps across episodes in the wrapper
         cfg = make_cfg(*TINY, "env.name=NaNInvertedPendulum-v0", "algorithm=ddpg")
-        with pytest.raises(recipe_utils.NonFiniteEnvOutput, match="NaN/inf in .*observation"):
+        with pytest.raises(NonFiniteEnvOutput, match="NaN/inf in .*observation"):
             rave_mujoco.train(cfg, str(tmp_path))
-        ckpt = recipe_utils.Checkpointer(tmp_path).latest()
-        state = torch.load(ckpt / "state.pt", weights_only=False)
-        assert state["counters"]["frames"] == 100  # the last good batch
-        rb = recipe_utils.make_replay_buffer(cfg, "cpu")
-        recipe_utils.Checkpointer(tmp_path).load(rb)
+        checkpoint = RunCheckpoint(tmp_path)
+        assert checkpoint.read("counters")["frames"] == 100  # the last good batch
+        rb = make_replay_buffer(cfg, "cpu")
+        checkpoint.load(replay_buffer=rb, restore_rng=False)
         assert len(rb) == 100
         assert torch.isfinite(rb[:100]["next", "observation"]).all()
 
@@ -227,7 +235,7 @@ class TestCheckpoints:
             stdout=subprocess.DEVNULL,
             stderr=subprocess.DEVNULL,
         )
-        checkpointer = recipe_utils.Checkpointer(tmp_path)
+        checkpointer = RunCheckpoint(tmp_path)
         deadline = time.time() + 240
         while checkpointer.latest() is None and proc.poll() is None and time.time() < deadline:
             time.sleep(0.2)
@@ -235,28 +243,29 @@ class TestCheckpoints:
         proc.wait()
         first = checkpointer.latest()
         assert first is not None, "the run died before writing its first checkpoint"
-        saved = torch.load(first / "state.pt", weights_only=False)
-        f0 = saved["counters"]["frames"]
+        saved_counters = checkpointer.read("counters", first)
+        f0 = saved_counters["frames"]
         assert f0 % 300 == 0 and 300 <= f0 < 3000
         cfg = make_cfg(*overrides)
-        saved_rb = recipe_utils.make_replay_buffer(cfg, "cpu")
-        saved_rb.loads(first / "replay_buffer")
+        saved_rb = make_replay_buffer(cfg, "cpu")
+        checkpointer.load(replay_buffer=saved_rb, path=first, restore_rng=False)
         saved_obs = saved_rb[:f0]["observation"].clone()
-        saved_steps = saved["optimizers"]["critic"]["state"][0]["step"].item()
+        saved_steps = checkpointer.read("optim_critic", first)["state"][0]["step"].item()
 
         results = rave_mujoco.train(make_cfg(*overrides, f"resume={tmp_path}"), "unused")
         assert results["frames"] == 3000
-        final = torch.load(checkpointer.latest() / "state.pt", weights_only=False)
-        assert final["counters"]["frames"] == 3000
-        rb = recipe_utils.make_replay_buffer(cfg, "cpu")
-        rb.loads(checkpointer.latest() / "replay_buffer")
+        final = checkpointer.read("counters")
+        assert final["frames"] == 3000
+        rb = make_replay_buffer(cfg, "cpu")
+        checkpointer.load(replay_buffer=rb, restore_rng=False)
         assert len(rb) == 3000
         assert torch.equal(rb[:f0]["observation"], saved_obs)  # old data kept, in place
         # Adam's step count carries on from the checkpoint: a reset optimiser would be
         # short by exactly the saved count.
         new_updates = round(0.1 * (3000 - f0))
-        assert final["optimizers"]["critic"]["state"][0]["step"].item() == saved_steps + new_updates
-        assert final["counters"]["updates"] == saved["counters"]["updates"] + new_updates
+        final_steps = checkpointer.read("optim_critic")["state"][0]["step"].item()
+        assert final_steps == saved_steps + new_updates
+        assert final["updates"] == saved_counters["updates"] + new_updates
         evals = read_scalar(tmp_path, "eval/return", "rave")
         assert evals[-1][0] == 3000
 
@@ -280,10 +289,7 @@ class TestCheckpoints:
         proc.send_signal(signal.SIGINT)
         out, _ = proc.communicate(timeout=240)
         assert proc.returncode == 0
-        state = torch.load(
-            recipe_utils.Checkpointer(tmp_path).latest() / "state.pt", weights_only=False
-        )
-        frames = state["counters"]["frames"]
+        frames = RunCheckpoint(tmp_path).read("counters")["frames"]
         assert 0 < frames < 100000 and frames % 100 == 0  # a whole number of batches
         assert f"stopped at frame {frames}; resume with resume={tmp_path}" in out
 
@@ -296,13 +302,11 @@ class TestCheckpoints:
         again = rave_mujoco.train(make_cfg(*overrides, f"resume={tmp_path}"), "unused")
         assert again["frames"] == 300 and again["updates"] == first["updates"]
         assert again["eval/return"] == first["eval/return"]
-        saved = torch.load(
-            recipe_utils.Checkpointer(tmp_path).latest() / "state.pt", weights_only=False
-        )
+        checkpoint = RunCheckpoint(tmp_path)
         # the world-model normalisers saw all 300 stored frames, and the resolved buffer
         # size is part of the saved config
-        assert saved["world_model"]["obs_norm.count"].item() == 300
-        assert OmegaConf.create(saved["config"]).replay_buffer.size == 300
+        assert checkpoint.read("world_model")["obs_norm.count"].item() == 300
+        assert OmegaConf.create(checkpoint.read("config")).replay_buffer.size == 300
 
     def test_resume_refuses_a_different_algorithm(self, tmp_path):
         overrides = [*TINY, "algorithm=ddpg", "collector.total_frames=200"]
@@ -339,8 +343,8 @@ class TestCompare:
         compare.main(args)
         printed = capsys.readouterr().out
         values = [
-            compare.final_eval(
-                compare.run_dir(tmp_path, "InvertedPendulum-v5", "ddpg", s), "ddpg", 300
+            value_logged_at(
+                compare.run_dir(tmp_path, "InvertedPendulum-v5", "ddpg", s), "eval/return", 300
             )
             for s in (0, 1)
         ]
@@ -390,14 +394,8 @@ class TestLoggers:
         monkeypatch.setenv("WANDB_SILENT", "true")
         overrides = [*TINY, "algorithm=ddpg", "logger.backend=wandb", "collector.total_frames=200"]
         rave_mujoco.train(make_cfg(*overrides), str(tmp_path))
-        saved = torch.load(
-            recipe_utils.Checkpointer(tmp_path).latest() / "state.pt", weights_only=False
-        )
-        run_id = saved["logger"]["local"]["id"]
+        run_id = RunCheckpoint(tmp_path).read("logger")["local"]["id"]
         assert run_id
         overrides[-1] = "collector.total_frames=400"
         rave_mujoco.train(make_cfg(*overrides, f"resume={tmp_path}"), "unused")
-        resumed = torch.load(
-            recipe_utils.Checkpointer(tmp_path).latest() / "state.pt", weights_only=False
-        )
-        assert resumed["logger"]["local"]["id"] == run_id
+        assert RunCheckpoint(tmp_path).read("logger")["local"]["id"] == run_id

@@ -15,12 +15,14 @@ from torchrl.modules import MLP, Actor, ValueOperator
 from torchrl.objectives import DDPGLoss, SoftUpdate, TD3Loss
 
 from torchrl_rave import (
+    EnsembleDDPGLoss,
     MVEEstimator,
     RAVEValueEstimator,
     STEVEEstimator,
     ValueExpansionEstimator,
     WorldModelEnsemble,
     make_value_expansion_estimator,
+    patch_value_estimator_setter,
 )
 from torchrl_rave.modules import TensorCall
 
@@ -72,6 +74,13 @@ def batch(B=8, terminal=(), seed=1):
 def ddpg_loss():
     torch.manual_seed(3)
     loss = DDPGLoss(actor_net(), critic_net(), delay_actor=True, delay_value=True)
+    SoftUpdate(loss, tau=0.05)
+    return loss
+
+
+def ensemble_loss(K=2):
+    torch.manual_seed(3)
+    loss = EnsembleDDPGLoss(actor_net(), critic_net(), num_value_nets=K)
     SoftUpdate(loss, tau=0.05)
     return loss
 
@@ -203,7 +212,7 @@ class TestAgainstNaiveRollout:
                     )
                 )
             ).clamp_min(0)
-        torch.testing.assert_close(data["rave_alpha"].squeeze(-1), alpha)
+        torch.testing.assert_close(data["value_expansion_alpha"].squeeze(-1), alpha)
         with torch.no_grad():
             ref = naive_target(
                 wm, actor, critics[0], params, data, 0.9, H, alpha, "inverse_variance"
@@ -315,10 +324,10 @@ class TestHandComputed:
         steve = line_estimator(STEVEEstimator, done_prob=1.0, horizon=3)
         data = line_batch()
         assert steve.value_estimate(data).item() == pytest.approx((11.5 + 3 * 2.5) / 4)
-        torch.testing.assert_close(data["rave_horizon_weights"], torch.full((1, 4), 0.25))
+        torch.testing.assert_close(data["steve_horizon_weights"], torch.full((1, 4), 0.25))
 
     def test_terminal_batch_with_neural_ensemble(self):
-        loss = ddpg_loss()
+        loss = ensemble_loss()
         loss.make_value_estimator(
             RAVEValueEstimator.for_loss(loss, world_model=world_model(4), gamma=0.99, horizon=3)
         )
@@ -357,12 +366,13 @@ class TestZeroVariance:
 class TestLossIntegration:
     def test_both_doors_install_the_estimator(self):
         wm = world_model()
-        loss = ddpg_loss()
+        loss = ensemble_loss()
         est = RAVEValueEstimator.for_loss(loss, world_model=wm, gamma=0.99)
         loss.make_value_estimator(est)
         assert loss.value_estimator is est
-        loss2 = ddpg_loss()
+        loss2 = ensemble_loss()
         est2 = RAVEValueEstimator.for_loss(loss2, world_model=wm, gamma=0.99)
+        patch_value_estimator_setter()  # the opt-in fix for torchrl 0.14's setter
         loss2.value_estimator = est2
         assert loss2.value_estimator is est2
         # the world model is not registered inside the loss
@@ -373,7 +383,7 @@ class TestLossIntegration:
         loss = ddpg_loss()
         loss.make_value_estimator(
             STEVEEstimator,
-            world_model=world_model(),
+            world_model=world_model(1),
             actor_network=loss.actor_network,
             value_network=loss.value_network,
             gamma=0.9,
@@ -386,14 +396,14 @@ class TestLossIntegration:
         loss = td3_loss(K=3)
         est = RAVEValueEstimator.for_loss(loss, world_model=world_model(2), gamma=0.99, horizon=1)
         shapes = []
-        original = est._critic
+        original = est.networks.critic
 
-        def spy(o, a, p):
-            out = original(o, a, p)
+        def spy(o, a, p, keys):
+            out = original(o, a, p, keys)
             shapes.append(tuple(out.shape))
             return out
 
-        est._critic = spy
+        est.networks.critic = spy
         loss.make_value_estimator(est)
         data = batch(B=5)
         out = loss(data)
@@ -401,7 +411,7 @@ class TestLossIntegration:
         (out["loss_actor"] + out["loss_qvalue"]).backward()
 
     def test_reads_soft_updated_target_params(self):
-        loss = ddpg_loss()
+        loss = ensemble_loss()
         updater = SoftUpdate(loss, tau=0.5)
         est = STEVEEstimator.for_loss(loss, world_model=world_model(), gamma=0.9)
         data = batch()
@@ -412,7 +422,7 @@ class TestLossIntegration:
         assert not torch.allclose(before, after)
 
     def test_make_by_name(self):
-        loss = ddpg_loss()
+        loss = ensemble_loss()
         wm = world_model()
         assert (
             type(make_value_expansion_estimator("RAVE", loss, world_model=wm, gamma=0.9))
@@ -426,7 +436,7 @@ class TestLossIntegration:
 
 class TestNoGradientThroughTarget:
     def test_critic_actor_and_model_get_no_target_gradient(self):
-        wm = world_model()
+        wm = world_model(1)  # one member: a single critic is then no degenerate mix
         loss = ddpg_loss()
         loss.make_value_estimator(RAVEValueEstimator.for_loss(loss, world_model=wm, gamma=0.99))
         data = batch(B=12)
@@ -452,7 +462,7 @@ class TestNoGradientThroughTarget:
 class TestFastCalls:
     """The planned tensor calls give the TensorDict path's target exactly."""
 
-    @pytest.mark.parametrize("make_loss", [ddpg_loss, td3_loss])
+    @pytest.mark.parametrize("make_loss", [ensemble_loss, td3_loss])
     def test_same_target_and_diagnostics(self, make_loss):
         loss = make_loss()
         perturb(loss.target_actor_network_params)
@@ -475,7 +485,7 @@ class TestCallCounts:
     """O(N H) transition, O(N^2 H) reward, O(N K H) critic rows: never N^3 network work."""
 
     @pytest.mark.parametrize("fast_calls", [False, True])
-    @pytest.mark.parametrize("N,K,H", [(1, 1, 0), (3, 1, 2), (4, 4, 3), (5, 2, 1)])
+    @pytest.mark.parametrize("N,K,H", [(1, 1, 0), (3, 2, 2), (4, 4, 3), (5, 2, 1)])
     def test_rows_per_network(self, N, K, H, fast_calls, monkeypatch):
         wm = world_model(N)
         loss = td3_loss(K)
@@ -533,7 +543,7 @@ class TestCallCounts:
 
 class TestBadInput:
     def est(self, **kw):
-        loss = ddpg_loss()
+        loss = ensemble_loss()
         return RAVEValueEstimator.for_loss(loss, world_model=world_model(), gamma=0.9, **kw)
 
     def test_observation_size_mismatch(self):
@@ -582,6 +592,24 @@ class TestBadInput:
             WorldModelEnsemble(S, A, num_models=0)
         with pytest.raises(ValueError, match="world_model"):
             RAVEValueEstimator.for_loss(ddpg_loss(), gamma=0.9)
+
+    @pytest.mark.parametrize("cls", [RAVEValueEstimator, STEVEEstimator])
+    def test_single_critic_is_refused_with_a_pointer(self, cls):
+        with pytest.raises(ValueError, match="needs K >= 2 critics.*EnsembleDDPGLoss"):
+            cls.for_loss(ddpg_loss(), world_model=world_model(4), gamma=0.9)
+        with pytest.raises(ValueError, match="needs K >= 2 critics"):
+            cls.for_loss(td3_loss(K=1), world_model=world_model(4), gamma=0.9)
+        # an estimator built by hand on one critic is refused at its first call, before
+        # any rollout
+        est = cls(
+            world_model=world_model(4), actor_network=actor_net(), value_network=critic_net(),
+            gamma=0.9,
+        )  # fmt: skip
+        with pytest.raises(ValueError, match="needs K >= 2 critics"):
+            est.value_estimate(batch())
+        # MVE's fixed horizon and one-member models have no degenerate mix
+        MVEEstimator.for_loss(ddpg_loss(), world_model=world_model(4), gamma=0.9)
+        cls.for_loss(ddpg_loss(), world_model=world_model(1), gamma=0.9).value_estimate(batch())
 
     def test_tensordict_alpha_needs_the_key(self):
         est = self.est(alpha_mode="tensordict")

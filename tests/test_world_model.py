@@ -8,21 +8,34 @@ from tensordict import TensorDict
 from tensordict.nn import set_interaction_type
 
 from torchrl_rave.modules import EnsembleLinear, EnsembleMLP, RunningNormalizer, WorldModelEnsemble
-from torchrl_rave.objectives import WorldModelLoss, gaussian_nll
+from torchrl_rave.objectives import WorldModelEnsembleLoss, gaussian_nll
+
+
+def fit_identity(wm: WorldModelEnsemble) -> WorldModelEnsemble:
+    """Marks the normalisers as fitted while keeping them the identity: +-1 rows have mean
+    0 and variance 1 for the observation, action, state change and reward."""
+    S, A = wm.observation_dim, wm.action_dim
+    sign = torch.tensor([[-1.0], [1.0]])
+    obs = sign.expand(2, S)
+    wm.update_normalizers(obs, sign.expand(2, A), 2 * obs, sign)
+    torch.testing.assert_close(wm.delta_norm.var, torch.ones(S))
+    return wm
 
 
 def small_model(S=3, A=2, N=4, width=16, **kw):
-    return WorldModelEnsemble(
-        S,
-        A,
-        num_models=N,
-        transition_cells=width,
-        transition_layers=3,
-        reward_cells=width,
-        reward_layers=3,
-        termination_cells=width,
-        termination_layers=3,
-        **kw,
+    return fit_identity(
+        WorldModelEnsemble(
+            S,
+            A,
+            num_models=N,
+            transition_cells=width,
+            transition_layers=3,
+            reward_cells=width,
+            reward_layers=3,
+            termination_cells=width,
+            termination_layers=3,
+            **kw,
+        )
     )
 
 
@@ -198,8 +211,8 @@ class TestWorldModelEnsemble:
                 observation_key="pixels",
             )
 
-    def test_default_sizes_follow_paper_depths_and_steve_widths(self):
-        wm = WorldModelEnsemble(4, 2)
+    def test_paper_size_follows_paper_depths_and_steve_widths(self):
+        wm = WorldModelEnsemble(4, 2, size="paper")
         assert wm.num_models == 4
         # 8 FC layers for the transition model: 7 trunk layers + the mean/logvar heads
         assert len(wm.transition.trunk.layers) == 7 and wm.transition.mean_head.in_features == 512
@@ -207,6 +220,33 @@ class TestWorldModelEnsemble:
             len(wm.reward_model.trunk.layers) == 3 and wm.reward_model.mean_head.in_features == 128
         )
         assert len(wm.termination.layers) == 4 and wm.termination.layers[0].out_features == 128
+
+    def test_cpu_size_is_the_default_and_arguments_override_it(self):
+        wm = WorldModelEnsemble(4, 2)
+        # 4 FC layers for the transition model: 3 trunk layers + the heads, width 64
+        assert len(wm.transition.trunk.layers) == 3 and wm.transition.mean_head.in_features == 64
+        assert (
+            len(wm.reward_model.trunk.layers) == 2 and wm.reward_model.mean_head.in_features == 64
+        )
+        assert len(wm.termination.layers) == 3 and wm.termination.layers[0].out_features == 64
+        wide = WorldModelEnsemble(4, 2, size="paper", transition_cells=32)
+        assert wide.transition.mean_head.in_features == 32
+        assert len(wide.transition.trunk.layers) == 7  # the paper's depth stays
+        with pytest.raises(ValueError, match="size must be one of"):
+            WorldModelEnsemble(4, 2, size="huge")
+
+    def test_training_before_any_normaliser_update_is_refused(self):
+        wm = WorldModelEnsemble(3, 2)
+        assert not wm.normalizers_fitted
+        with pytest.raises(RuntimeError, match="normalisers were never updated"):
+            WorldModelEnsembleLoss(wm)(transitions(8))
+        wm.update_normalizers_from(transitions(8))
+        assert wm.normalizers_fitted
+        WorldModelEnsembleLoss(wm)(transitions(8))
+        # statistics loaded from a trained model count as fitted
+        fresh = WorldModelEnsemble(3, 2)
+        fresh.load_state_dict(wm.state_dict())
+        assert fresh.normalizers_fitted
 
     @pytest.mark.parametrize("bad", [0, -1, 2.5])
     def test_bad_ensemble_size(self, bad):
@@ -229,7 +269,7 @@ class TestWorldModelLoss:
 
     def test_bootstrap_indices_independent_per_member(self):
         torch.manual_seed(0)
-        loss = WorldModelLoss(small_model(N=4))
+        loss = WorldModelEnsembleLoss(small_model(N=4))
         idx = loss.bootstrap_indices(256)
         assert idx.shape == (4, 256)
         for i in range(4):
@@ -246,7 +286,7 @@ class TestWorldModelLoss:
         with torch.no_grad():  # make every member identical, then see whether the updates split
             for p in wm.parameters():
                 p.copy_(p[:1].expand_as(p))
-        loss = WorldModelLoss(wm, bootstrap=bootstrap)
+        loss = WorldModelEnsembleLoss(wm, bootstrap=bootstrap)
         out = loss(transitions(128))
         (out["loss_transition"] + out["loss_reward"] + out["loss_termination"]).backward()
         grad = wm.transition.trunk.layers[0].weight.grad
@@ -254,7 +294,7 @@ class TestWorldModelLoss:
         assert same != bootstrap
 
     def test_logs_and_errors(self):
-        loss = WorldModelLoss(small_model())
+        loss = WorldModelEnsembleLoss(small_model())
         out = loss(transitions(32))
         for key in (
             "transition_nll",
@@ -271,7 +311,7 @@ class TestWorldModelLoss:
         with pytest.raises(ValueError, match="observation"):
             loss(transitions(32, S=4))
         # without the finiteness check (data checked upstream) NaN flows through
-        unchecked = WorldModelLoss(loss.world_model, check_finite=False)
+        unchecked = WorldModelEnsembleLoss(loss.world_model, check_finite=False)
         assert torch.isnan(unchecked(bad)["transition_mse"])
         with pytest.raises(ValueError, match="observation"):  # shapes are still checked
             unchecked(transitions(32, S=4))
@@ -317,7 +357,7 @@ class TestLearnsLinearGaussianSystem:
             termination_layers=2,
         )
         wm.update_normalizers_from(data)
-        loss = WorldModelLoss(wm)
+        loss = WorldModelEnsembleLoss(wm)
         opt = torch.optim.Adam(wm.parameters(), lr=3e-3)
         n = data.shape[0]
         for _ in range(steps):

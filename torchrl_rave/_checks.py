@@ -23,8 +23,13 @@ def get_checked(
         raise ValueError(
             f"entry {key!r} has shape {tuple(value.shape)}, expected last dimension {size}"
         )
-    if check_finite and value.is_floating_point() and not bool(torch.isfinite(value).all()):
-        raise ValueError(f"entry {key!r} holds NaN or infinite values")
+    if check_finite and value.is_floating_point():
+        message = f"entry {key!r} holds NaN or infinite values"
+        if torch.compiler.is_compiling():
+            # reading the flag back on the host would break the graph; assert on device
+            torch._assert_async(torch.isfinite(value).all(), message)
+        elif not bool(torch.isfinite(value).all()):
+            raise ValueError(message)
     return value
 
 

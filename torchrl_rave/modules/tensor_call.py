@@ -31,7 +31,7 @@ from torch import nn
 from torch.nn import functional as F
 from torchrl.modules import MLP, TanhModule
 
-__all__ = ["TensorCall"]
+__all__ = ["PlannedCalls", "TensorCall"]
 
 # Parameter-free activations that act element-wise (safe to apply to [K, M, F] at once).
 _ELEMENTWISE = (
@@ -206,3 +206,35 @@ class TensorCall:
                 for k in module.out_keys:
                     values[k] = td.get(k)
         return {k: values[k] for k in self.out_keys}
+
+
+class PlannedCalls:
+    """The :class:`TensorCall` plans of one owner's networks, made once per
+    ``(name, stacked)`` and kept; every lookup gives ``None`` while ``enabled`` is off or
+    when a network cannot be planned (the owner then takes its TensorDict path).
+
+    Examples:
+        >>> from torchrl.modules import MLP, ValueOperator
+        >>> critic = ValueOperator(MLP(in_features=5, out_features=1, num_cells=[8]),
+        ...                        in_keys=["observation", "action"])
+        >>> calls = PlannedCalls()
+        >>> calls.get("critic", critic, stacked=True) is calls.get("critic", critic, stacked=True)
+        True
+        >>> calls.enabled = False
+        >>> calls.get("critic", critic) is None
+        True
+    """
+
+    def __init__(self, enabled: bool = True) -> None:
+        self.enabled = enabled
+        self._plans: dict[tuple[str, bool], TensorCall | None] = {}
+
+    def get(
+        self, name: str, module: TensorDictModuleBase, stacked: bool = False
+    ) -> TensorCall | None:
+        if not self.enabled:
+            return None
+        key = (name, stacked)
+        if key not in self._plans:
+            self._plans[key] = TensorCall.plan(module, stacked=stacked)
+        return self._plans[key]

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from collections.abc import Sequence
+from typing import Literal
 
 import torch
 from tensordict import TensorDict, TensorDictBase
@@ -14,7 +15,28 @@ from torch import nn
 from torchrl_rave.modules.ensemble import EnsembleMLP, GaussianEnsembleMLP
 from torchrl_rave.modules.normalizer import RunningNormalizer
 
-__all__ = ["WorldModelEnsemble"]
+__all__ = ["WorldModelEnsemble", "WORLD_MODEL_SIZES"]
+
+# Named sizes: ``cpu`` trains at a few ms per step on a laptop core; ``paper`` has the
+# paper's depths (appendix A) with the widths of STEVE's released configuration.
+WORLD_MODEL_SIZES: dict[str, dict[str, int]] = {
+    "cpu": dict(
+        transition_cells=64,
+        transition_layers=4,
+        reward_cells=64,
+        reward_layers=3,
+        termination_cells=64,
+        termination_layers=3,
+    ),
+    "paper": dict(
+        transition_cells=512,
+        transition_layers=8,
+        reward_cells=128,
+        reward_layers=4,
+        termination_cells=128,
+        termination_layers=4,
+    ),
+}
 
 
 def _cells(width: int | Sequence[int], num_layers: int, name: str) -> list[int]:
@@ -61,10 +83,16 @@ class WorldModelEnsemble(TensorDictModuleBase):
     ``[N, *B, F]`` with ``per_member=True`` give member ``i`` the slice ``i``; outputs
     are always ``[N, *B, F']``.
 
-    Default sizes follow the paper's depths (appendix A: 8 FC layers for the transition
-    model, 4 for reward and termination) and the widths of STEVE's released configuration
-    (512 for the transition model, 128 for reward and termination), which the paper does
-    not state.
+    Sizes come by name: ``size="cpu"`` (the default: 4 x 64 transition, 3 x 64 reward
+    and termination networks, a few ms per training step on one CPU core) or
+    ``size="paper"`` (the paper's depths, appendix A: 8 FC layers for the transition model,
+    4 for reward and termination, with the widths of STEVE's released configuration, 512
+    and 128, which the paper does not state; sized for a GPU). Any ``*_cells`` /
+    ``*_layers`` argument overrides its entry.
+
+    The normalisers must see the data (:meth:`update_normalizers_from` on every batch that
+    enters the replay buffer, as :class:`~torchrl_rave.trainers.WorldModelTrainer` does);
+    training a model whose normalisers never saw any data is refused.
 
     Args:
         observation_dim (int): size of the observation vector ``S``.
@@ -72,13 +100,14 @@ class WorldModelEnsemble(TensorDictModuleBase):
 
     Keyword Args:
         num_models (int): ensemble size ``N``. Defaults to 4.
-        transition_cells (int or Sequence[int]): width of the transition model, or its
-            list of hidden widths. Defaults to 512.
-        transition_layers (int): FC layers of the transition model including the output
-            layer (ignored when ``transition_cells`` is a list). Defaults to 8.
-        reward_cells, reward_layers: same for the reward model. Defaults to 128, 4.
-        termination_cells, termination_layers: same for the termination model.
-            Defaults to 128, 4.
+        size (str): ``"cpu"`` or ``"paper"``, the defaults of the six size arguments below.
+            Defaults to ``"cpu"``.
+        transition_cells (int or Sequence[int], optional): width of the transition model,
+            or its list of hidden widths.
+        transition_layers (int, optional): FC layers of the transition model including
+            the output layer (ignored when ``transition_cells`` is a list).
+        reward_cells, reward_layers (optional): same for the reward model.
+        termination_cells, termination_layers (optional): same for the termination model.
         activation (type[nn.Module]): hidden activation. Defaults to ReLU.
         observation_key (NestedKey): observation entry for :meth:`forward`.
         action_key (NestedKey): action entry for :meth:`forward`.
@@ -121,12 +150,13 @@ class WorldModelEnsemble(TensorDictModuleBase):
         action_dim: int,
         *,
         num_models: int = 4,
-        transition_cells: int | Sequence[int] = 512,
-        transition_layers: int = 8,
-        reward_cells: int | Sequence[int] = 128,
-        reward_layers: int = 4,
-        termination_cells: int | Sequence[int] = 128,
-        termination_layers: int = 4,
+        size: Literal["cpu", "paper"] = "cpu",
+        transition_cells: int | Sequence[int] | None = None,
+        transition_layers: int | None = None,
+        reward_cells: int | Sequence[int] | None = None,
+        reward_layers: int | None = None,
+        termination_cells: int | Sequence[int] | None = None,
+        termination_layers: int | None = None,
         activation: type[nn.Module] = nn.ReLU,
         observation_key: NestedKey = "observation",
         action_key: NestedKey = "action",
@@ -139,6 +169,17 @@ class WorldModelEnsemble(TensorDictModuleBase):
         ):
             if not isinstance(value, int) or isinstance(value, bool) or value < 1:
                 raise ValueError(f"{name} must be a positive integer, got {value!r}")
+        if size not in WORLD_MODEL_SIZES:
+            raise ValueError(f"size must be one of {list(WORLD_MODEL_SIZES)}, got {size!r}")
+        given = dict(
+            transition_cells=transition_cells,
+            transition_layers=transition_layers,
+            reward_cells=reward_cells,
+            reward_layers=reward_layers,
+            termination_cells=termination_cells,
+            termination_layers=termination_layers,
+        )
+        sizes = {k: WORLD_MODEL_SIZES[size][k] if v is None else v for k, v in given.items()}
         self.num_models = num_models
         self.observation_dim = observation_dim
         self.action_dim = action_dim
@@ -147,23 +188,28 @@ class WorldModelEnsemble(TensorDictModuleBase):
             num_models,
             S + A,
             S,
-            _cells(transition_cells, transition_layers, "transition"),
+            _cells(sizes["transition_cells"], sizes["transition_layers"], "transition"),
             activation,
         )
         self.reward_model = GaussianEnsembleMLP(
-            num_models, 2 * S + A, 1, _cells(reward_cells, reward_layers, "reward"), activation
+            num_models,
+            2 * S + A,
+            1,
+            _cells(sizes["reward_cells"], sizes["reward_layers"], "reward"),
+            activation,
         )
         self.termination = EnsembleMLP(
             num_models,
             S,
             1,
-            _cells(termination_cells, termination_layers, "termination"),
+            _cells(sizes["termination_cells"], sizes["termination_layers"], "termination"),
             activation,
         )
         self.obs_norm = RunningNormalizer(S)
         self.action_norm = RunningNormalizer(A)
         self.delta_norm = RunningNormalizer(S)
         self.reward_norm = RunningNormalizer(1)
+        self._normalizers_fitted = False
         self.observation_key = observation_key
         self.action_key = action_key
         self.in_keys = [observation_key, action_key]
@@ -320,6 +366,23 @@ class WorldModelEnsemble(TensorDictModuleBase):
         return torch.sigmoid(self.termination_logits(next_obs, per_member=per_member))
 
     # ----------------------------------------------------------- normalisers
+    @property
+    def normalizers_fitted(self) -> bool:
+        """Whether the normalisers have seen data (updated, or loaded from a state dict)."""
+        if not self._normalizers_fitted:  # a device sync only until the first data
+            self._normalizers_fitted = bool(self.obs_norm.count > 0)
+        return self._normalizers_fitted
+
+    def check_normalizers(self) -> None:
+        """Raises when the normalisers never saw data: the model would then be trained
+        on raw, unscaled inputs and targets with nothing to say so."""
+        if not self.normalizers_fitted:
+            raise RuntimeError(
+                "the WorldModelEnsemble's normalisers were never updated: call "
+                "world_model.update_normalizers_from(batch) on every batch that enters the "
+                "replay buffer (WorldModelTrainer.extend(batch) does it) before training"
+            )
+
     @torch.no_grad()
     def update_normalizers(
         self,
@@ -333,6 +396,7 @@ class WorldModelEnsemble(TensorDictModuleBase):
         Call it on every batch that enters the replay buffer (or on the whole buffer).
         """
         self.obs_norm.update(obs)
+        self._normalizers_fitted = self._normalizers_fitted or obs.numel() > 0
         self.action_norm.update(action)
         self.delta_norm.update(next_obs - obs)
         self.reward_norm.update(reward.reshape(-1, 1))

@@ -2,6 +2,7 @@
 
 from torchrl_rave.objectives import functional
 from torchrl_rave.objectives.ensemble_ddpg import EnsembleDDPGLoss
+from torchrl_rave.objectives.target_networks import TargetNetworks
 from torchrl_rave.objectives.target_update import ForeachSoftUpdate
 from torchrl_rave.objectives.value_expansion import (
     MVEEstimator,
@@ -10,7 +11,7 @@ from torchrl_rave.objectives.value_expansion import (
     ValueExpansionEstimator,
     make_value_expansion_estimator,
 )
-from torchrl_rave.objectives.world_model_loss import WorldModelLoss, gaussian_nll
+from torchrl_rave.objectives.world_model_loss import WorldModelEnsembleLoss, gaussian_nll
 
 __all__ = [
     "functional",
@@ -19,8 +20,9 @@ __all__ = [
     "MVEEstimator",
     "RAVEValueEstimator",
     "STEVEEstimator",
+    "TargetNetworks",
     "ValueExpansionEstimator",
-    "WorldModelLoss",
+    "WorldModelEnsembleLoss",
     "gaussian_nll",
     "make_value_expansion_estimator",
 ]

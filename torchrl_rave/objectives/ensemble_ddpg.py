@@ -2,43 +2,63 @@
 
 from __future__ import annotations
 
-import torch
-from torchrl.objectives import TD3Loss
-from torchrl.objectives.utils import distance_loss
+from dataclasses import dataclass
 
-from torchrl_rave.modules.tensor_call import TensorCall
+import torch
+from tensordict import TensorDict, TensorDictBase
+from tensordict.nn import TensorDictModule, TensorDictParams, dispatch
+from tensordict.utils import NestedKey
+from torchrl.objectives import LossModule, ValueEstimators
+from torchrl.objectives.utils import _cache_values, _vmap_func, distance_loss
+
+from torchrl_rave._checks import check_positive_int
+from torchrl_rave.modules.tensor_call import PlannedCalls
 from torchrl_rave.objectives.value_expansion import ValueExpansionEstimator
 
+__all__ = ["EnsembleDDPGLoss"]
 
-class EnsembleDDPGLoss(TD3Loss):
+_PARAMS = (
+    "actor_network_params",
+    "value_network_params",
+    "target_actor_network_params",
+    "target_value_network_params",
+)
+
+
+class EnsembleDDPGLoss(LossModule):
     """DDPG with ``K`` critics trained on one shared target; the actor ascends their mean.
 
     STEVE and RAVE build on DDPG with a critic ensemble (paper: ``K = 4``): every critic
-    regresses onto the same value-expansion target, and the deterministic policy follows the
-    ensemble's mean Q. This is :class:`~torchrl.objectives.TD3Loss` (which already holds K
-    stacked critics, their targets and a vmapped forward) with two changes:
+    regresses onto the same target and the deterministic policy follows the ensemble's
+    mean Q. The constructor, attributes and outputs are :class:`~torchrl.objectives.DDPGLoss`'s
+    (``value_network``, ``delay_value``, ``value_network_params``, ``loss_value``,
+    ``loss_actor``, ``loss_value(td)`` / ``loss_actor(td)``), so a DDPG script swaps the
+    class name and adds ``num_value_nets``. The ``K`` critics are one module's parameters
+    stacked along a leading dimension, each member initialised independently.
 
-    - no target-policy smoothing noise (``policy_noise = noise_clip = 0``), and
-    - the actor loss is ``-mean_k Q_k(s, pi(s))`` instead of TD3's ``-Q_0(s, pi(s))``.
-
-    The target comes from the loss's value estimator: plug in
-    :class:`~torchrl_rave.objectives.RAVEValueEstimator` (or STEVE / MVE). The default TD(0)
-    estimator keeps TD3's minimum over the target critics, which for ``K = 1`` is plain DDPG.
+    The target comes from the loss's value estimator: install
+    :class:`~torchrl_rave.objectives.RAVEValueEstimator` (or STEVE / MVE) with
+    ``loss.make_value_estimator(RAVEValueEstimator.for_loss(loss, world_model=wm, gamma=g))``.
+    The default TD(0) estimator bootstraps from the minimum over the target critics at the
+    target policy's action, which for ``K = 1`` is plain DDPG.
 
     Args:
-        actor_network: deterministic policy (e.g. :class:`~torchrl.modules.Actor`).
-        qvalue_network: one critic; it is copied into ``num_qvalue_nets`` independent members.
+        actor_network (TensorDictModule): deterministic policy (e.g. :class:`~torchrl.modules.Actor`).
+        value_network (TensorDictModule): one critic ``(observation, action) -> state_action_value``;
+            it is copied into ``num_value_nets`` independently initialised members.
 
     Keyword Args:
-        num_qvalue_nets (int): ``K``. Defaults to 4 (paper).
+        num_value_nets (int): ``K``. Defaults to 4 (paper).
+        loss_function (str): distance of the critic regression. Defaults to ``"l2"``.
+        delay_actor (bool): keep target actor parameters. Defaults to ``True``, unlike
+            ``DDPGLoss``: STEVE and RAVE roll out the *target* policy (paper eq. 8).
+        delay_value (bool): keep target critic parameters. Defaults to ``True``.
         fast_calls (bool): evaluate the actor and the K critics through
             :class:`~torchrl_rave.modules.TensorCall` (direct matmuls, one batched matmul per
-            layer for all critics) when their structure allows it, instead of TD3Loss's
-            TensorDict + ``vmap`` path. Same numbers either way. With a value-expansion
-            estimator the loss also skips TD3's next-state target, which that estimator
-            does not read. Defaults to ``True``.
-        **kwargs: the other keyword arguments of :class:`~torchrl.objectives.TD3Loss`
-            (``action_spec``, ``loss_function``, ``delay_actor``, ``delay_qvalue`` ...).
+            layer for all critics) when their structure allows it, instead of TensorDict
+            calls through ``torch.vmap``. Same numbers either way. Defaults to ``True``.
+        reduction (str, optional): ``"mean"`` (default), ``"sum"`` or ``"none"``.
+        use_prioritized_weights (str or bool): as in TorchRL's losses. Defaults to ``"auto"``.
 
     Examples:
         >>> import torch
@@ -49,87 +69,166 @@ class EnsembleDDPGLoss(TD3Loss):
         >>> actor = Actor(torch.nn.Sequential(torch.nn.Linear(3, 2), torch.nn.Tanh()), spec=spec)
         >>> critic = ValueOperator(MLP(in_features=5, out_features=1, num_cells=[8]),
         ...                        in_keys=["observation", "action"])
-        >>> loss = EnsembleDDPGLoss(actor, critic, action_spec=spec, num_qvalue_nets=4)
+        >>> loss = EnsembleDDPGLoss(actor, critic, num_value_nets=4)
         >>> batch = TensorDict({"observation": torch.randn(6, 3), "action": torch.rand(6, 2),
         ...     ("next", "observation"): torch.randn(6, 3), ("next", "reward"): torch.randn(6, 1),
         ...     ("next", "done"): torch.zeros(6, 1, dtype=torch.bool),
         ...     ("next", "terminated"): torch.zeros(6, 1, dtype=torch.bool)}, [6])
         >>> out = loss(batch)
-        >>> out["loss_actor"].shape, out["state_action_value_actor"].shape
-        (torch.Size([]), torch.Size([4, 6]))
+        >>> out["loss_value"].shape, out["pred_value"].shape, out["state_action_value_actor"].shape
+        (torch.Size([]), torch.Size([4, 6]), torch.Size([4, 6]))
     """
+
+    @dataclass
+    class _AcceptedKeys:
+        """Configurable tensordict keys (``set_keys``), as in ``DDPGLoss`` plus ``action``.
+
+        Attributes:
+            state_action_value (NestedKey): the critics' output. Defaults to ``"state_action_value"``.
+            action (NestedKey): the action entry. Defaults to ``"action"``.
+            priority (NestedKey): where the TD error is written. Defaults to ``"td_error"``.
+            reward (NestedKey): reward, under ``"next"``. Defaults to ``"reward"``.
+            done (NestedKey): done flag, under ``"next"``. Defaults to ``"done"``.
+            terminated (NestedKey): termination flag, under ``"next"``. Defaults to ``"terminated"``.
+            priority_weight (NestedKey): importance weights. Defaults to ``"priority_weight"``.
+        """
+
+        state_action_value: NestedKey = "state_action_value"
+        action: NestedKey = "action"
+        priority: NestedKey = "td_error"
+        reward: NestedKey = "reward"
+        done: NestedKey = "done"
+        terminated: NestedKey = "terminated"
+        priority_weight: NestedKey = "priority_weight"
+
+    default_keys = _AcceptedKeys
+    default_value_estimator = ValueEstimators.TD0
+    out_keys = [
+        "loss_actor",
+        "loss_value",
+        "pred_value",
+        "target_value",
+        "pred_value_max",
+        "target_value_max",
+        "state_action_value_actor",
+    ]
+
+    actor_network: TensorDictModule
+    value_network: TensorDictModule
+    actor_network_params: TensorDictParams
+    value_network_params: TensorDictParams
+    target_actor_network_params: TensorDictParams
+    target_value_network_params: TensorDictParams
 
     def __init__(
         self,
-        actor_network,
-        qvalue_network,
+        actor_network: TensorDictModule,
+        value_network: TensorDictModule,
         *,
-        num_qvalue_nets: int = 4,
+        num_value_nets: int = 4,
+        loss_function: str = "l2",
+        delay_actor: bool = True,
+        delay_value: bool = True,
         fast_calls: bool = True,
-        **kwargs,
-    ):
-        for key in ("policy_noise", "noise_clip"):
-            if key in kwargs:
-                raise TypeError(f"EnsembleDDPGLoss takes no {key!r}: DDPG has no target smoothing")
-        kwargs.setdefault("loss_function", "l2")
-        super().__init__(
-            actor_network,
-            qvalue_network,
-            num_qvalue_nets=num_qvalue_nets,
-            policy_noise=0.0,
-            noise_clip=0.0,
-            **kwargs,
+        reduction: str | None = None,
+        use_prioritized_weights: str | bool = "auto",
+    ) -> None:
+        check_positive_int("num_value_nets", num_value_nets)
+        super().__init__()
+        self.use_prioritized_weights = use_prioritized_weights
+        self.delay_actor = delay_actor
+        self.delay_value = delay_value
+        self.convert_to_functional(actor_network, "actor_network", create_target_params=delay_actor)
+        self.convert_to_functional(
+            value_network, "value_network", num_value_nets, create_target_params=delay_value
         )
-        self.fast_calls = fast_calls
-        self.__dict__["_tensor_calls"] = {}
+        self.num_value_nets = num_value_nets
+        self.loss_function = loss_function
+        self.reduction = reduction or "mean"
+        self._vmap_value_network = _vmap_func(self.value_network, randomness=self.vmap_randomness)
+        self.__dict__["_calls"] = PlannedCalls(fast_calls)
+        self._in_keys = None
 
-    def _tensor_call(self, which: str) -> TensorCall | None:
-        """Planned tensor-level calls of the actor and of the K stacked critics (cached)."""
-        if which not in self._tensor_calls:
-            if not self.fast_calls:
-                call = None
-            elif which == "actor":
-                call = TensorCall.plan(self.actor_network)
-            else:
-                call = TensorCall.plan(self.qvalue_network, stacked=True)
-            self._tensor_calls[which] = call
-        return self._tensor_calls[which]
+    # --------------------------------------------------------------------- keys
+    def _forward_value_estimator_keys(self, **kwargs) -> None:
+        if self._value_estimator is not None:
+            self._value_estimator.set_keys(
+                value=self.tensor_keys.state_action_value,
+                reward=self.tensor_keys.reward,
+                done=self.tensor_keys.done,
+                terminated=self.tensor_keys.terminated,
+            )
+        self._in_keys = None
 
-    def _fast(self) -> bool:
-        return self._tensor_call("actor") is not None and self._tensor_call("critic") is not None
+    @property
+    def in_keys(self) -> list[NestedKey]:
+        if self._in_keys is None:
+            k = self.tensor_keys
+            keys = {
+                k.action,
+                ("next", k.reward),
+                ("next", k.done),
+                ("next", k.terminated),
+                *self.actor_network.in_keys,
+                *[("next", key) for key in self.actor_network.in_keys],
+                *self.value_network.in_keys,
+            }
+            self._in_keys = sorted(keys, key=str)
+        return self._in_keys
 
-    def _actions(self, inputs, params) -> torch.Tensor:
-        return self._tensor_call("actor")(params, inputs)[self.tensor_keys.action]
+    @in_keys.setter
+    def in_keys(self, values) -> None:
+        self._in_keys = values
 
-    def _q(self, inputs, params) -> torch.Tensor:
-        """``[K, *B]`` values of the K critics with stacked ``params``."""
-        out = self._tensor_call("critic")(params, inputs)[self.tensor_keys.state_action_value]
-        return out.squeeze(-1)
+    # ----------------------------------------------------------- network calls
+    @property
+    def fast_calls(self) -> bool:
+        return self._calls.enabled
 
-    def _critic_inputs(self, source, action: torch.Tensor) -> dict:
+    @fast_calls.setter
+    def fast_calls(self, value: bool) -> None:
+        self._calls.enabled = value
+
+    @property
+    @_cache_values
+    def _cached_detach_value_network_params(self):
+        return self.value_network_params.detach()
+
+    def _actions(self, source, params) -> torch.Tensor:
+        """The actor's action for the inputs ``source(key)`` under ``params``."""
+        inputs = {k: source(k) for k in self.actor_network.in_keys}
+        call = self._calls.get("actor", self.actor_network)
+        if call is not None:
+            return call(params, inputs)[self.tensor_keys.action]
+        td = TensorDict(inputs, batch_size=inputs[self.actor_network.in_keys[0]].shape[:-1])
+        with params.to_module(self.actor_network, preserve_module_state=False):
+            return self.actor_network(td).get(self.tensor_keys.action)
+
+    def _values(self, source, action: torch.Tensor, params) -> torch.Tensor:
+        """``[K, *B]`` values of the K critics (stacked ``params``) at ``action``."""
         keys = self.tensor_keys
-        return {k: action if k == keys.action else source(k) for k in self.qvalue_network.in_keys}
+        inputs = {k: action if k == keys.action else source(k) for k in self.value_network.in_keys}
+        call = self._calls.get("critic", self.value_network, stacked=True)
+        if call is not None:
+            return call(params, inputs)[keys.state_action_value].squeeze(-1)
+        td = TensorDict(inputs, batch_size=action.shape[:-1])
+        td = td.expand(self.num_value_nets, *td.batch_size)
+        return self._vmap_value_network(td, params).get(keys.state_action_value).squeeze(-1)
 
-    def actor_loss(self, tensordict) -> tuple[torch.Tensor, dict]:
-        if not self._fast():
-            return self._actor_loss_tensordict(tensordict)
+    # ------------------------------------------------------------------ losses
+    def loss_actor(self, tensordict: TensorDictBase) -> tuple[torch.Tensor, dict]:
+        """``-mean_k Q_k(s, pi(s))``; the critics' weights are detached, so only the actor moves."""
         weights = self._maybe_get_priority_weight(tensordict)
-        actor_in = {k: tensordict.get(k) for k in self.actor_network.in_keys}
-        action = self._actions(actor_in, self.actor_network_params)
-        # the critics' weights are detached so this loss moves only the actor
-        q = self._q(
-            self._critic_inputs(tensordict.get, action), self._cached_detach_qvalue_network_params
-        )
+        action = self._actions(tensordict.get, self.actor_network_params)
+        q = self._values(tensordict.get, action, self._cached_detach_value_network_params)
         loss = self._reduce_loss(-q.mean(0), tensordict=tensordict, weights=weights)
         return loss, {"state_action_value_actor": q.detach()}
 
-    def value_loss(self, tensordict) -> tuple[torch.Tensor, dict]:
-        if not self._fast():
-            return super().value_loss(tensordict)
+    def loss_value(self, tensordict: TensorDictBase) -> tuple[torch.Tensor, dict]:
+        """Every critic regresses onto the estimator's target; the sum over critics is reduced."""
         weights = self._maybe_get_priority_weight(tensordict)
         tensordict = tensordict.clone(False)
         keys = self.tensor_keys
-        next_value = None
         if not isinstance(self.value_estimator, ValueExpansionEstimator):
             # TD(0)/TD(lambda) read the next state's value from the batch: the minimum over
             # the target critics at the target policy's action (one critic: plain DDPG).
@@ -138,48 +237,59 @@ class EnsembleDDPGLoss(TD3Loss):
                 def next_entry(k):
                     return tensordict.get(("next", k))
 
-                actor_in = {k: next_entry(k) for k in self.actor_network.in_keys}
-                next_action = self._actions(actor_in, self.target_actor_network_params)
-                next_q = self._q(
-                    self._critic_inputs(next_entry, next_action),
-                    self.target_qvalue_network_params,
-                )
-                next_value = next_q.min(0)[0]
-            tensordict.set(("next", keys.state_action_value), next_value.unsqueeze(-1))
-        current = self._q(
-            self._critic_inputs(tensordict.get, tensordict.get(keys.action)),
-            self.qvalue_network_params,
+                next_action = self._actions(next_entry, self.target_actor_network_params)
+                next_q = self._values(next_entry, next_action, self.target_value_network_params)
+            tensordict.set(("next", keys.state_action_value), next_q.min(0)[0].unsqueeze(-1))
+        current = self._values(
+            tensordict.get, tensordict.get(keys.action), self.value_network_params
         )
         target = self.value_estimator.value_estimate(tensordict).squeeze(-1)
         loss = distance_loss(current, target.expand_as(current), loss_function=self.loss_function)
         loss = self._reduce_loss(loss.sum(0), tensordict=tensordict, weights=weights)
-        metadata = {
-            "td_error": (current - target).pow(2).detach(),
-            "pred_value": current.detach(),
-            "target_value": target.detach(),
-        }
-        if next_value is not None:
-            metadata["next_state_value"] = next_value
+        with torch.no_grad():
+            td_error = (current - target).pow(2)
+            metadata = {
+                "td_error": td_error,
+                "pred_value": current.detach(),
+                "target_value": target,
+                "pred_value_max": current.max(),
+                "target_value_max": target.max(),
+            }
         return loss, metadata
 
-    def _actor_loss_tensordict(self, tensordict) -> tuple[torch.Tensor, dict]:
-        weights = self._maybe_get_priority_weight(tensordict)
-        actor_in = tensordict.select(*self.actor_network.in_keys, strict=False)
-        with self.actor_network_params.to_module(self.actor_network, preserve_module_state=False):
-            actor_out = self.actor_network(actor_in)
-        # One (s, pi(s)) batch per critic; the critics' weights are detached so this loss
-        # moves only the actor.
-        critic_in = actor_out.select(*self.qvalue_network.in_keys, strict=False).expand(
-            self.num_qvalue_nets, *actor_out.batch_size
+    @dispatch
+    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
+        """Critic and actor losses; writes the critics' largest squared TD error under
+        ``priority`` for prioritised replay."""
+        loss_value, metadata = self.loss_value(tensordict)
+        loss_actor, metadata_actor = self.loss_actor(tensordict)
+        tensordict.set(self.tensor_keys.priority, metadata.pop("td_error").max(0)[0])
+        out = TensorDict(
+            {"loss_actor": loss_actor, "loss_value": loss_value, **metadata, **metadata_actor}
         )
-        q = self._vmap_qvalue_network00(critic_in, self._cached_detach_qvalue_network_params)
-        q = q.get(self.tensor_keys.state_action_value).squeeze(-1)
-        loss = self._reduce_loss(-q.mean(0), tensordict=tensordict, weights=weights)
-        self._clear_weakrefs(
-            tensordict,
-            "actor_network_params",
-            "qvalue_network_params",
-            "target_actor_network_params",
-            "target_qvalue_network_params",
+        self._clear_weakrefs(tensordict, out, *_PARAMS)
+        return out
+
+    def make_value_estimator(self, value_type: ValueEstimators = None, **hyperparams):
+        """TD(0), TD(1) or TD(lambda) on the batch's ``("next", state_action_value)``
+        (see :meth:`loss_value`), or an estimator instance such as
+        :class:`~torchrl_rave.objectives.RAVEValueEstimator`."""
+        from torchrl.objectives.utils import dispatch_value_estimator
+
+        value_type, hp = self._prepare_value_estimator_kwargs(value_type, **hyperparams)
+        if value_type is None:
+            return self
+        dispatch_value_estimator(
+            self,
+            value_type,
+            supported=(ValueEstimators.TD0, ValueEstimators.TD1, ValueEstimators.TDLambda),
+            tensor_keys={
+                "value": self.tensor_keys.state_action_value,
+                "reward": self.tensor_keys.reward,
+                "done": self.tensor_keys.done,
+                "terminated": self.tensor_keys.terminated,
+            },
+            value_network=None,
+            **hp,
         )
-        return loss, {"state_action_value_actor": q.detach()}
+        return self

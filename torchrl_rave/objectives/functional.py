@@ -250,7 +250,9 @@ def expansion_target(
 
 
 def adaptive_alpha(
-    prediction_error: torch.Tensor, alpha: torch.Tensor | float, scale: torch.Tensor | float = 1.0
+    prediction_error: torch.Tensor,
+    alpha: torch.Tensor | float,
+    alpha_error_scale: torch.Tensor | float = 1.0,
 ) -> torch.Tensor:
     """Per-sample confidence factor ``max(0, alpha (1 - err / Z))`` (eq. 12).
 
@@ -258,10 +260,10 @@ def adaptive_alpha(
         prediction_error (Tensor): ``||mean_i f_s,i(s_t, a_t) - s_{t+1}||^2`` in the model's
             normalised units, ``[*B]``.
         alpha (float or Tensor): the constant ``alpha``.
-        scale (float or Tensor): ``Z``.
+        alpha_error_scale (float or Tensor): ``Z``.
 
     Examples:
         >>> adaptive_alpha(torch.tensor([0.0, 0.5, 3.0]), 1.5, 1.0)
         tensor([1.5000, 0.7500, 0.0000])
     """
-    return (alpha * (1.0 - prediction_error / scale)).clamp_min(0.0)
+    return (alpha * (1.0 - prediction_error / alpha_error_scale)).clamp_min(0.0)

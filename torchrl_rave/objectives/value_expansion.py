@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import logging
 from dataclasses import dataclass
 from typing import Literal
 
@@ -13,9 +12,9 @@ from tensordict.utils import NestedKey
 from torchrl.objectives.value import ValueEstimatorBase
 
 from torchrl_rave._checks import check_non_negative, check_positive_int, get_checked
-from torchrl_rave.modules.tensor_call import TensorCall
 from torchrl_rave.modules.world_model import WorldModelEnsemble
 from torchrl_rave.objectives import functional as VF
+from torchrl_rave.objectives.target_networks import TargetNetworks
 
 __all__ = [
     "ValueExpansionEstimator",
@@ -25,11 +24,49 @@ __all__ = [
     "make_value_expansion_estimator",
 ]
 
-logger = logging.getLogger(__name__)
-
 RolloutMode = Literal["sample", "mean"]
 MixMode = Literal["inverse_variance", "fixed"]
 AlphaMode = Literal["constant", "adaptive", "tensordict"]
+
+
+def _accepted_keys(prefix: str) -> type:
+    """The estimators' configurable keys, with the diagnostics under ``<prefix>_*``."""
+
+    @dataclass
+    class _AcceptedKeys:
+        """Configurable tensordict keys (``set_keys``).
+
+        Attributes:
+            advantage (NestedKey): where ``forward`` writes ``target - value``. Defaults to ``"advantage"``.
+            value_target (NestedKey): where ``forward`` writes the target. Defaults to ``"value_target"``.
+            value (NestedKey): the critic's output. Defaults to ``"state_action_value"``.
+            reward (NestedKey): reward, read under ``"next"``. Defaults to ``"reward"``.
+            done (NestedKey): done flag, read under ``"next"``. Defaults to ``"done"``.
+            terminated (NestedKey): termination flag, read under ``"next"``. Defaults to ``"terminated"``.
+            observation (NestedKey): observation entry. Defaults to ``"observation"``.
+            action (NestedKey): action entry. Defaults to ``"action"``.
+            alpha (NestedKey): per-sample alpha used (written; read in ``"tensordict"`` mode).
+                Defaults to ``"<prefix>_alpha"``: ``rave_alpha``, ``steve_alpha``,
+                ``mve_alpha``, ``value_expansion_alpha`` for the base class.
+            horizon_variance (NestedKey): ``V_H`` per sample, ``[*B, H_max + 1]``.
+                Defaults to ``"<prefix>_horizon_variance"``.
+            horizon_weights (NestedKey): normalised ``w_H`` per sample. Defaults to
+                ``"<prefix>_horizon_weights"``.
+        """
+
+        advantage: NestedKey = "advantage"
+        value_target: NestedKey = "value_target"
+        value: NestedKey = "state_action_value"
+        reward: NestedKey = "reward"
+        done: NestedKey = "done"
+        terminated: NestedKey = "terminated"
+        observation: NestedKey = "observation"
+        action: NestedKey = "action"
+        alpha: NestedKey = f"{prefix}_alpha"
+        horizon_variance: NestedKey = f"{prefix}_horizon_variance"
+        horizon_weights: NestedKey = f"{prefix}_horizon_weights"
+
+    return _AcceptedKeys
 
 
 class ValueExpansionEstimator(ValueEstimatorBase):
@@ -67,11 +104,13 @@ class ValueExpansionEstimator(ValueEstimatorBase):
     input tensordict under the ``alpha``/``horizon_variance``/``horizon_weights`` keys and
     kept as :attr:`diagnostics` (a TensorDict) for losses that work on a copy of the batch.
 
-    .. note:: With a single critic (``K = 1``, e.g. a stock one-critic ``DDPGLoss``) all
-        ``H = 0`` candidates are the same number, so ``V_0 = 0`` and the inverse-variance
-        mix puts (almost) all weight on ``H = 0``: STEVE and RAVE then reduce to TD(0).
-        The paper uses ``K = N = 4`` critics; use ``TD3Loss(num_qvalue_nets=K)`` or pass
-        stacked ``value_params``. A warning is logged once when this happens.
+    STEVE and RAVE need ``K >= 2`` critics: with one, every ``H = 0`` candidate is the
+    same number, ``V_0 = 0`` and the inverse-variance mix returns TD(0) after paying for
+    every rollout, so a single critic is refused (use
+    :class:`~torchrl_rave.objectives.EnsembleDDPGLoss`, the paper's ``K = 4``).
+
+    Diagnostics are keyed by the estimator that wrote them (``rave_*``, ``steve_*``,
+    ``mve_*``; renameable with ``set_keys``).
 
     Keyword Args:
         world_model (WorldModelEnsemble): the probabilistic ensemble (any object with the
@@ -104,13 +143,13 @@ class ValueExpansionEstimator(ValueEstimatorBase):
 
     Examples:
         >>> from torchrl.modules import MLP, Actor, ValueOperator
-        >>> from torchrl.objectives import DDPGLoss
+        >>> from torchrl_rave.objectives import EnsembleDDPGLoss
         >>> wm = WorldModelEnsemble(3, 1, num_models=2, transition_cells=8, reward_cells=8,
         ...                         termination_cells=8)
         >>> actor = Actor(MLP(in_features=3, out_features=1, num_cells=[8]))
         >>> qvalue = ValueOperator(MLP(in_features=4, out_features=1, num_cells=[8]),
         ...                        in_keys=["observation", "action"])
-        >>> loss = DDPGLoss(actor, qvalue, delay_actor=True, delay_value=True)
+        >>> loss = EnsembleDDPGLoss(actor, qvalue, num_value_nets=4)
         >>> _ = loss.make_value_estimator(RAVEValueEstimator.for_loss(
         ...     loss, world_model=wm, gamma=0.99, horizon=3, alpha=1.5))
         >>> batch = TensorDict(
@@ -125,39 +164,7 @@ class ValueExpansionEstimator(ValueEstimatorBase):
         (torch.Size([8, 4]), torch.Size([8, 1]))
     """
 
-    @dataclass
-    class _AcceptedKeys:
-        """Configurable tensordict keys (``set_keys``).
-
-        Attributes:
-            advantage (NestedKey): where ``forward`` writes ``target - value``. Defaults to ``"advantage"``.
-            value_target (NestedKey): where ``forward`` writes the target. Defaults to ``"value_target"``.
-            value (NestedKey): the critic's output. Defaults to ``"state_action_value"``.
-            reward (NestedKey): reward, read under ``"next"``. Defaults to ``"reward"``.
-            done (NestedKey): done flag, read under ``"next"``. Defaults to ``"done"``.
-            terminated (NestedKey): termination flag, read under ``"next"``. Defaults to ``"terminated"``.
-            observation (NestedKey): observation entry. Defaults to ``"observation"``.
-            action (NestedKey): action entry. Defaults to ``"action"``.
-            alpha (NestedKey): per-sample alpha used (written; read in ``"tensordict"`` mode).
-                Defaults to ``"rave_alpha"``.
-            horizon_variance (NestedKey): ``V_H`` per sample, ``[*B, H_max + 1]``.
-                Defaults to ``"rave_horizon_variance"``.
-            horizon_weights (NestedKey): normalised ``w_H`` per sample. Defaults to
-                ``"rave_horizon_weights"``.
-        """
-
-        advantage: NestedKey = "advantage"
-        value_target: NestedKey = "value_target"
-        value: NestedKey = "state_action_value"
-        reward: NestedKey = "reward"
-        done: NestedKey = "done"
-        terminated: NestedKey = "terminated"
-        observation: NestedKey = "observation"
-        action: NestedKey = "action"
-        alpha: NestedKey = "rave_alpha"
-        horizon_variance: NestedKey = "rave_horizon_variance"
-        horizon_weights: NestedKey = "rave_horizon_weights"
-
+    _AcceptedKeys = _accepted_keys("value_expansion")
     default_keys = _AcceptedKeys
 
     def __init__(
@@ -209,24 +216,37 @@ class ValueExpansionEstimator(ValueEstimatorBase):
         )
         # Held by reference: the loss (or the user) owns and trains these.
         self.__dict__["world_model"] = world_model
-        self.__dict__["actor_network"] = actor_network
-        self.__dict__["_actor_params"] = actor_params
-        self.__dict__["_value_params"] = value_params
-        self.__dict__["_loss"] = None
-        self.__dict__["_loss_param_names"] = None
-        self._warned_single_critic = False
+        self.__dict__["networks"] = TargetNetworks(
+            actor_network,
+            value_network,
+            actor_params=actor_params,
+            value_params=value_params,
+            fast_calls=fast_calls,
+        )
         self.__dict__["diagnostics"] = None
-        self.fast_calls = fast_calls
-        self.__dict__["_tensor_calls"] = {}
+
+    @property
+    def actor_network(self) -> TensorDictModuleBase:
+        return self.networks.actor_network
+
+    @property
+    def fast_calls(self) -> bool:
+        return self.networks.calls.enabled
+
+    @fast_calls.setter
+    def fast_calls(self, value: bool) -> None:
+        self.networks.calls.enabled = value
 
     # ----------------------------------------------------------------- wiring
     @classmethod
     def for_loss(cls, loss_module, **hyperparams) -> ValueExpansionEstimator:
         """Builds an estimator on ``loss_module``'s actor and critic (target parameters).
 
-        Works with ``DDPGLoss`` (``value_network``, ``K = 1``), ``TD3Loss`` and other losses
-        exposing ``qvalue_network`` with stacked parameters (``K`` = their number), and
-        copies the loss's key names (value, reward, done, terminated, action).
+        Works with :class:`~torchrl_rave.objectives.EnsembleDDPGLoss` (``K`` =
+        ``num_value_nets``), ``TD3Loss`` and other losses exposing ``qvalue_network`` with
+        stacked parameters (``K`` = their number), and copies the loss's key names (value,
+        reward, done, terminated, action). A single-critic loss (``DDPGLoss``) is refused
+        for STEVE and RAVE: see :meth:`_check_num_critics`.
 
         Keyword Args:
             world_model (WorldModelEnsemble): required.
@@ -234,33 +254,18 @@ class ValueExpansionEstimator(ValueEstimatorBase):
         """
         if "world_model" not in hyperparams:
             raise ValueError(f"{cls.__name__}.for_loss needs world_model=")
-        actor = hyperparams.pop("actor_network", None)
-        if actor is None:
-            actor = getattr(loss_module, "actor_network", None)
-        if actor is None:
-            raise ValueError(
-                f"{type(loss_module).__name__} has no actor_network; pass actor_network= explicitly"
-            )
-        if "qvalue_network" in loss_module._modules or hasattr(
-            loss_module, "qvalue_network_params"
-        ):
-            critic_name = "qvalue_network"
-        elif hasattr(loss_module, "value_network_params"):
-            critic_name = "value_network"
-        else:
-            raise ValueError(
-                f"{type(loss_module).__name__} has neither a qvalue_network nor a value_network"
-            )
+        networks = TargetNetworks.of_loss(
+            loss_module,
+            hyperparams.pop("actor_network", None),
+            fast_calls=hyperparams.get("fast_calls", True),
+        )
         estimator = cls(
-            actor_network=actor,
-            value_network=getattr(loss_module, critic_name),
+            actor_network=networks.actor_network,
+            value_network=networks.value_network,
             **hyperparams,
         )
-        estimator.__dict__["_loss"] = loss_module
-        estimator.__dict__["_loss_param_names"] = (
-            "target_actor_network_params",
-            f"target_{critic_name}_params",
-        )
+        estimator.__dict__["networks"] = networks
+        estimator._check_num_critics(networks.wired_num_critics())
         loss_keys = loss_module.tensor_keys
         forwarded = {
             "value": getattr(loss_keys, "state_action_value", None),
@@ -271,14 +276,6 @@ class ValueExpansionEstimator(ValueEstimatorBase):
         }
         estimator.set_keys(**{k: v for k, v in forwarded.items() if v is not None})
         return estimator
-
-    def _params(self, target_params: TensorDictBase | None):
-        if target_params is not None and ("module", "0") in target_params.keys(True):
-            # DDPGLoss passes its actor-critic target parameters in this layout.
-            return target_params["module", "0"], target_params["module", "1"]
-        if self._loss is not None:
-            return tuple(getattr(self._loss, name) for name in self._loss_param_names)
-        return self._actor_params, self._value_params
 
     @property
     def in_keys(self):
@@ -296,48 +293,6 @@ class ValueExpansionEstimator(ValueEstimatorBase):
     def out_keys(self):
         k = self.tensor_keys
         return [k.value_target, k.alpha, k.horizon_variance, k.horizon_weights]
-
-    # ------------------------------------------------------------ network calls
-    def _tensor_call(self, which: str, module, stacked: bool) -> TensorCall | None:
-        """The planned tensor-level call of ``module`` (cached; ``None``: no fast path)."""
-        key = (which, stacked)
-        if key not in self._tensor_calls:
-            self._tensor_calls[key] = (
-                TensorCall.plan(module, stacked=stacked) if self.fast_calls else None
-            )
-        return self._tensor_calls[key]
-
-    def _policy(self, obs: torch.Tensor, params) -> torch.Tensor:
-        k = self.tensor_keys
-        call = self._tensor_call("actor", self.actor_network, False)
-        if call is not None:
-            return call(params, {k.observation: obs})[k.action]
-        td = TensorDict({k.observation: obs}, batch_size=obs.shape[:-1])
-        if params is None:
-            return self.actor_network(td).get(k.action)
-        with params.to_module(self.actor_network, preserve_module_state=False):
-            return self.actor_network(td).get(k.action)
-
-    def _critic(self, obs: torch.Tensor, action: torch.Tensor, params) -> torch.Tensor:
-        """Critic values ``[K, *B]`` (``K = 1`` without stacked parameters)."""
-        k = self.tensor_keys
-        net = self.value_network
-        stacked = params is not None and params.batch_dims >= 1
-        call = self._tensor_call("critic", net, stacked)
-        if call is not None:
-            q = call(params, {k.observation: obs, k.action: action})[k.value].squeeze(-1)
-            return q if stacked else q.unsqueeze(0)
-
-        def call(o, a, p):
-            td = TensorDict({k.observation: o, k.action: a}, batch_size=o.shape[:-1])
-            if p is None:
-                return net(td).get(k.value)
-            with p.to_module(net, preserve_module_state=False):
-                return net(td).get(k.value)
-
-        if stacked:
-            return torch.vmap(call, (None, None, 0))(obs, action, params).squeeze(-1)
-        return call(obs, action, params).squeeze(-1).unsqueeze(0)
 
     def _alpha(self, obs, action, next_obs, tensordict, batch_shape) -> torch.Tensor:
         if self.alpha_mode == "constant":
@@ -376,6 +331,27 @@ class ValueExpansionEstimator(ValueEstimatorBase):
             )
         return obs, action, next_obs, reward, terminated, batch_shape
 
+    def _check_num_critics(self, num_critics: int) -> None:
+        """Refuses one critic where the inverse-variance mix needs several.
+
+        With ``K = 1`` every ``H = 0`` candidate is the same number, so ``V_0 = 0``; with
+        ``N > 1`` model members the longer horizons have ``V_H > 0`` and the mix puts all
+        its weight on ``H = 0``: STEVE and RAVE would pay for every rollout and return
+        TD(0).
+        """
+        if (
+            num_critics == 1
+            and self.world_model.num_models > 1
+            and self.horizon > 0
+            and self.mix == "inverse_variance"
+        ):
+            raise ValueError(
+                f"{type(self).__name__} needs K >= 2 critics: with a single critic V_0 = 0 "
+                "and the inverse-variance mix reduces to TD(0) after paying for every "
+                "rollout. Use torchrl_rave.EnsembleDDPGLoss(actor, critic, num_value_nets=4) "
+                "(the paper's K = 4), TD3Loss(num_qvalue_nets=K), or stacked value_params."
+            )
+
     @torch.no_grad()
     def value_estimate(
         self,
@@ -405,13 +381,15 @@ class ValueExpansionEstimator(ValueEstimatorBase):
         M = reward.shape[0]
         sample = self.rollout == "sample"
         alpha = self._alpha(obs, action, next_obs, tensordict, batch_shape)
-        actor_params, value_params = self._params(target_params)
+        nets, keys = self.networks, self.tensor_keys
+        actor_params, value_params = nets.params(target_params)
+        self._check_num_critics(nets.num_critics(value_params))
 
         def step(s, a, per_member):
             return wm.step(s, a, sample=sample, per_member=per_member)
 
         def policy(s):
-            return self._policy(s, actor_params)
+            return nets.policy(s, actor_params, keys)
 
         states, actions = VF.imagined_rollout(next_obs, policy, step, N, H)
         # states/actions: [N, M, H+1, F]
@@ -425,15 +403,8 @@ class ValueExpansionEstimator(ValueEstimatorBase):
         # Horizon 0 is the same real state for every member: evaluate it once.
         flat_s = torch.cat([states[0, :, 0], states[:, :, 1:].reshape(-1, S)])
         flat_a = torch.cat([actions[0, :, 0], actions[:, :, 1:].reshape(-1, A)])
-        q = self._critic(flat_s, flat_a, value_params)  # [K, M + N*M*H]
+        q = nets.critic(flat_s, flat_a, value_params, keys)  # [K, M + N*M*H]
         K = q.shape[0]
-        if K == 1 and H > 0 and self.mix == "inverse_variance" and not self._warned_single_critic:
-            self._warned_single_critic = True
-            logger.warning(
-                "%s with a single critic: V_0 = 0, so the inverse-variance mix reduces to TD(0). "
-                "Use K >= 2 critics (TD3Loss(num_qvalue_nets=K) or stacked value_params).",
-                type(self).__name__,
-            )
         q0 = q[:, :M].reshape(K, 1, M, 1).expand(K, N, M, 1)
         values = torch.cat([q0, q[:, M:].reshape(K, N, M, H)], -1).transpose(
             0, 1
@@ -448,12 +419,11 @@ class ValueExpansionEstimator(ValueEstimatorBase):
             mean, var, mix=self.mix, alpha=alpha, horizon=H, eps=self.variance_eps
         )
 
-        k = self.tensor_keys
         diagnostics = TensorDict(
             {
-                k.alpha: alpha.expand(M).reshape(*batch_shape, 1),
-                k.horizon_variance: var.reshape(*batch_shape, H + 1),
-                k.horizon_weights: weights.reshape(*batch_shape, H + 1),
+                keys.alpha: alpha.expand(M).reshape(*batch_shape, 1),
+                keys.horizon_variance: var.reshape(*batch_shape, H + 1),
+                keys.horizon_weights: weights.reshape(*batch_shape, H + 1),
             },
             batch_size=batch_shape,
         )
@@ -493,6 +463,9 @@ class MVEEstimator(ValueExpansionEstimator):
     :class:`ValueExpansionEstimator` except ``rollout``, ``mix`` and ``alpha``.
     """
 
+    _AcceptedKeys = _accepted_keys("mve")
+    default_keys = _AcceptedKeys
+
     def __init__(self, *, horizon: int = 3, **kwargs) -> None:
         super().__init__(horizon=horizon, rollout="mean", mix="fixed", alpha=0.0, **kwargs)
 
@@ -503,6 +476,9 @@ class STEVEEstimator(ValueExpansionEstimator):
     Same keyword arguments as :class:`ValueExpansionEstimator` except ``rollout``,
     ``mix`` and ``alpha``.
     """
+
+    _AcceptedKeys = _accepted_keys("steve")
+    default_keys = _AcceptedKeys
 
     def __init__(self, *, horizon: int = 3, **kwargs) -> None:
         super().__init__(
@@ -526,6 +502,9 @@ class RAVEValueEstimator(ValueExpansionEstimator):
             the :class:`~torchrl_rave.transforms.AdaptiveAlpha` transform's output).
         **kwargs: see :class:`ValueExpansionEstimator`.
     """
+
+    _AcceptedKeys = _accepted_keys("rave")
+    default_keys = _AcceptedKeys
 
     def __init__(
         self,

@@ -14,7 +14,7 @@ from torchrl.objectives import LossModule
 from torchrl_rave._checks import get_checked
 from torchrl_rave.modules.world_model import WorldModelEnsemble
 
-__all__ = ["WorldModelLoss", "gaussian_nll"]
+__all__ = ["WorldModelEnsembleLoss", "gaussian_nll"]
 
 _HALF_LOG_2PI = 0.5 * math.log(2 * math.pi)
 
@@ -29,7 +29,7 @@ def gaussian_nll(mean: torch.Tensor, logvar: torch.Tensor, target: torch.Tensor)
     return 0.5 * ((target - mean).pow(2) * torch.exp(-logvar) + logvar) + _HALF_LOG_2PI
 
 
-class WorldModelLoss(LossModule):
+class WorldModelEnsembleLoss(LossModule):
     """Gaussian NLL for transition and reward, cross-entropy for termination.
 
     Each member trains on its own bootstrap resample of the batch: indices are drawn
@@ -62,7 +62,8 @@ class WorldModelLoss(LossModule):
         ...     next=TensorDict(observation=torch.randn(16, 3), reward=torch.randn(16, 1),
         ...                     terminated=torch.zeros(16, 1, dtype=torch.bool), batch_size=[16]),
         ...     batch_size=[16])
-        >>> loss = WorldModelLoss(wm)
+        >>> wm.update_normalizers_from(batch)  # statistics of the data the model sees
+        >>> loss = WorldModelEnsembleLoss(wm)
         >>> out = loss(batch)
         >>> sorted(out.keys())  # doctest: +NORMALIZE_WHITESPACE
         ['loss_reward', 'loss_termination', 'loss_transition', 'reward_mse', 'reward_nll',
@@ -134,6 +135,7 @@ class WorldModelLoss(LossModule):
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
         wm = self.world_model
+        wm.check_normalizers()
         keys = self.tensor_keys
         S, A = wm.observation_dim, wm.action_dim
         check = self.check_finite

@@ -36,7 +36,7 @@ class AdaptiveAlpha(Transform):
 
     Keyword Args:
         alpha (float): the constant ``alpha`` of eq. 12. Defaults to 1.5 (paper).
-        error_scale (float): ``Z``. Defaults to 1 (paper).
+        alpha_error_scale (float): ``Z``. Defaults to 1 (paper).
         observation_key (NestedKey): observation entry (``("next", key)`` is read too).
         action_key (NestedKey): action entry.
         out_key (NestedKey): where alpha is written, ``[*B, 1]``. Defaults to ``"rave_alpha"``.
@@ -58,21 +58,21 @@ class AdaptiveAlpha(Transform):
         world_model: WorldModelEnsemble,
         *,
         alpha: float = 1.5,
-        error_scale: float = 1.0,
+        alpha_error_scale: float = 1.0,
         observation_key: NestedKey = "observation",
         action_key: NestedKey = "action",
         out_key: NestedKey = "rave_alpha",
     ) -> None:
         check_non_negative("alpha", alpha)
-        if float(error_scale) <= 0:
-            raise ValueError(f"error_scale (Z) must be > 0, got {error_scale!r}")
+        if float(alpha_error_scale) <= 0:
+            raise ValueError(f"alpha_error_scale (Z) must be > 0, got {alpha_error_scale!r}")
         super().__init__(
             in_keys=[observation_key, action_key, ("next", observation_key)],
             out_keys=[out_key],
         )
         self.__dict__["world_model"] = world_model
         self.register_buffer("alpha", torch.tensor(float(alpha)))
-        self.register_buffer("error_scale", torch.tensor(float(error_scale)))
+        self.register_buffer("alpha_error_scale", torch.tensor(float(alpha_error_scale)))
 
     @torch.no_grad()
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
@@ -81,7 +81,7 @@ class AdaptiveAlpha(Transform):
         err = self.world_model.mean_prediction_error(
             obs, tensordict.get(action_key), tensordict.get(next_key)
         )
-        alpha = adaptive_alpha(err, self.alpha, self.error_scale)
+        alpha = adaptive_alpha(err, self.alpha, self.alpha_error_scale)
         tensordict.set(self.out_keys[0], alpha.unsqueeze(-1))
         return tensordict
 

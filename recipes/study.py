@@ -1,0 +1,218 @@
+"""A multi-session study: run its missing cells, keep their metrics, and report.
+
+python recipes/study.py run --jobs 2 --commit      # the cells still missing, two at a time
+python recipes/study.py report                     # tables and figures from results/ only
+
+A study (``recipes/study/<name>.yaml``) is a grid of tasks x algorithms x seeds of ordinary
+``rave_mujoco.py`` runs at one frame budget. Runs live under ``--out`` (not kept); as each
+cell finishes, its metric CSVs are copied to ``results/<name>/<task>/<algorithm>/seed<k>/``
+with ``cell.json`` (the commit and the full config it ran with, its wall time) and, with
+``--commit``, committed at once. A cell with a ``cell.json`` is done and never rerun; an
+interrupted one resumes from its last checkpoint when its run directory survived.
+Checkpoints and buffers are never copied.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import shutil
+import subprocess
+import time
+from pathlib import Path
+
+import numpy as np
+from compare import REFERENCE, cell
+from omegaconf import OmegaConf
+from plot_curves import band_plot
+
+from torchrl_rave.training.checkpoint import RunCheckpoint
+from torchrl_rave.training.runs import Cell, launch_grid, read_scalar
+
+ROOT = Path(__file__).resolve().parents[1]
+RECIPE = Path(__file__).resolve().parent / "rave_mujoco.py"
+DEFAULT = Path(__file__).resolve().parent / "study" / "mujoco100k.yaml"
+
+
+def load_study(path: Path):
+    study = OmegaConf.load(path)
+    for key in ("name", "tasks", "algorithms", "seeds", "frames"):
+        if key not in study:
+            raise ValueError(f"{path}: the study has no {key!r}")
+    return study
+
+
+def result_dir(results: Path, study, task: str, algorithm: str, seed: int) -> Path:
+    return results / study.name / task / algorithm / f"seed{seed}"
+
+
+def git(*args: str) -> str:
+    return subprocess.run(
+        ["git", *args], cwd=ROOT, capture_output=True, text=True, check=True
+    ).stdout.strip()
+
+
+def export(run: Cell, dest: Path, started: float, commit: bool) -> None:
+    """Copies a finished cell's metric CSVs and writes its cell.json; commits them."""
+    for csv in run.run_dir.glob("*/scalars/**/*.csv"):
+        target = dest / csv.relative_to(run.run_dir)
+        target.parent.mkdir(parents=True, exist_ok=True)
+        shutil.copyfile(csv, target)
+    info = {
+        "commit": git("rev-parse", "HEAD"),
+        "frames": run.frames,
+        "overrides": list(run.overrides),
+        "config": RunCheckpoint(run.run_dir).config(),
+        "wall_s_last_session": round(time.time() - started),
+        "finished": time.strftime("%Y-%m-%d %H:%M:%S %Z"),
+    }
+    (dest / "cell.json").write_text(json.dumps(info, indent=1) + "\n")
+    if commit:
+        rel = dest.relative_to(ROOT)
+        git("add", "--", str(rel))
+        git("commit", "-q", "-m", f"results: {rel.relative_to('results')}", "--", str(rel))
+
+
+def run(args) -> None:
+    study = load_study(args.config)
+    cells = {}
+    for task in study.tasks:
+        for algorithm in study.algorithms:
+            for seed in study.seeds:
+                dest = result_dir(args.results, study, task, algorithm, seed)
+                if (dest / "cell.json").exists():
+                    continue  # done in an earlier session
+                extra = list(study.get("overrides", []))
+                c = cell(args.out / study.name, task, algorithm, seed, study.frames, extra)
+                cells[c] = dest
+    print(f"{study.name}: {len(cells)} cells to go, {args.jobs} at a time", flush=True)
+    started = time.time()
+
+    def done(c: Cell, code: int) -> None:
+        if code == 0 and c.finished():
+            export(c, cells[c], started, args.commit)
+            print(f"done: {cells[c]}", flush=True)
+        else:
+            print(f"exit code {code}: {c.run_dir / 'stdout.log'}", flush=True)
+
+    # cells whose runs finished but were not exported (a stop between the two)
+    for c in [c for c in cells if c.finished()]:
+        done(c, 0)
+    launch_grid(RECIPE, [c for c in cells if not c.finished()], args.jobs, on_done=done)
+
+
+# two-sided 95 % Student-t quantiles by degrees of freedom (seeds - 1)
+T975 = {1: 12.706, 2: 4.303, 3: 3.182, 4: 2.776, 5: 2.571, 6: 2.447, 7: 2.365, 8: 2.306, 9: 2.262}
+
+
+def interval95(values: np.ndarray) -> tuple[float, float]:
+    """Mean and the half-width of its 95 % Student-t interval over seeds (NaN for one)."""
+    n = len(values)
+    half = T975[n - 1] * values.std(ddof=1) / np.sqrt(n) if 1 < n <= 10 else np.nan
+    return float(values.mean()), float(half)
+
+
+def group(study, results: Path, task: str, algorithm: str) -> list[Path]:
+    dirs = [result_dir(results, study, task, algorithm, s) for s in study.seeds]
+    return [d for d in dirs if (d / "cell.json").exists()]
+
+
+def series(runs: list[Path], metric: str) -> tuple[np.ndarray, np.ndarray]:
+    data = [read_scalar(r, metric) for r in runs]
+    common = sorted(set.intersection(*(set(s.tolist()) for s, _ in data)))
+    return np.array(common), np.stack([v[np.searchsorted(s, common)] for s, v in data])
+
+
+def report(args) -> str:
+    study = load_study(args.config)
+    out = args.figures
+    out.mkdir(parents=True, exist_ok=True)
+    at = [study.frames // 2, study.frames]
+    lines = [
+        f"Evaluation return ({study.name}): mean ± 95 % t-interval half-width over the seeds "
+        "that finished; falling rate pooled over seeds at the last evaluation.",
+        "",
+        "| task | algorithm | seeds | "
+        + " | ".join(f"return at {f:,}" for f in at)
+        + " | falling rate | reference at 100k (tianshou, gym v3; not ours) |",
+        "| --- " * (5 + len(at)) + "|",
+    ]
+    for task in study.tasks:
+        curves, diag = {}, {}
+        for algorithm in study.algorithms:
+            runs = group(study, args.results, task, algorithm)
+            ref = REFERENCE.get(task.split("-")[0], {}).get(algorithm, "")
+            ref = ref.split(" / ")[0] if ref else ""
+            if not runs:
+                lines.append(
+                    f"| {task} | {algorithm} | 0 |" + " n/a |" * (len(at) + 1) + f" {ref} |"
+                )
+                continue
+            steps, values = series(runs, "eval/return")
+            cells = []
+            for frame in at:
+                hit = np.flatnonzero(steps == frame)
+                cells.append(
+                    "n/a"
+                    if not hit.size
+                    else "{:.0f} ± {:.0f}".format(*interval95(values[:, hit[0]]))
+                )
+            _, falls = series(runs, "eval/falling_rate")
+            lines.append(
+                f"| {task} | {algorithm} | {len(runs)} | "
+                + " | ".join(cells)
+                + f" | {falls[:, -1].mean():.2f} | {ref} |"
+            )
+            lo, hi = values.min(0), values.max(0)
+            curves[f"{algorithm} ({len(runs)} seeds)"] = (steps, values.mean(0), lo, hi)
+            if algorithm == "rave":
+                diag = {m: series(runs, m) for m in ("train/alpha", "train/wm_transition_mse")}
+                diag.update(
+                    {
+                        f"train/horizon_weight_h{h}": series(runs, f"train/horizon_weight_h{h}")
+                        for h in range(4)
+                    }
+                )
+        if curves:
+            band_plot(
+                curves,
+                out / f"{study.name}_{task}_return.png",
+                xlabel="environment frames",
+                ylabel="eval/return (mean, band: min-max over seeds)",
+                title=f"{task}, {study.name}",
+            )
+        if diag:
+            band_plot(
+                {
+                    m.split("/")[1]: (s, v.mean(0), v.min(0), v.max(0))
+                    for m, (s, v) in diag.items()
+                    if m != "train/wm_transition_mse"
+                },
+                out / f"{study.name}_{task}_rave_diagnostics.png",
+                xlabel="environment frames",
+                ylabel="alpha, horizon weights",
+                title=f"RAVE diagnostics on {task}",
+            )
+    text = "\n".join(lines)
+    (out / f"{study.name}.md").write_text(text + "\n")
+    print(text)
+    return text
+
+
+def main(argv: list[str] | None = None):
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    sub = parser.add_subparsers(dest="command", required=True)
+    for name in ("run", "report"):
+        p = sub.add_parser(name)
+        p.add_argument("--config", type=Path, default=DEFAULT, help="the study's YAML")
+        p.add_argument("--results", type=Path, default=ROOT / "results")
+    sub.choices["run"].add_argument("--jobs", type=int, default=2)
+    sub.choices["run"].add_argument("--out", type=Path, default=ROOT / "outputs" / "study")
+    sub.choices["run"].add_argument("--commit", action="store_true", help="git-commit each cell")
+    sub.choices["report"].add_argument("--figures", type=Path, default=ROOT / "docs" / "figures")
+    args = parser.parse_args(argv)
+    return run(args) if args.command == "run" else report(args)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,105 @@
+"""torchrl_rave.training: run checkpoints (no pickle, two kept, old format refused),
+load_policy from a run directory, the run-directory reader, and the house rules."""
+
+from __future__ import annotations
+
+import re
+from pathlib import Path
+
+import numpy as np
+import pytest
+import rave_mujoco
+import torch
+from tensordict import TensorDict
+from test_recipe import TINY, make_cfg
+
+from torchrl_rave.training import load_agent, load_policy
+from torchrl_rave.training.checkpoint import RunCheckpoint
+from torchrl_rave.training.runs import read_scalar, value_logged_at
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+@pytest.fixture(scope="module")
+def rave_run(tmp_path_factory):
+    run = tmp_path_factory.mktemp("rave_run")
+    overrides = [*TINY, "algorithm=rave", "collector.total_frames=600", "checkpoint.interval=200"]
+    rave_mujoco.train(make_cfg(*overrides), str(run))
+    return run
+
+
+class TestRunCheckpoint:
+    def test_keeps_the_last_two_and_stores_no_pickle(self, rave_run):
+        names = sorted(p.name for p in (rave_run / "checkpoints").iterdir())
+        assert names == ["checkpoint-000000000400", "checkpoint-000000000600"]
+        files = [p for p in (rave_run / "checkpoints").rglob("*") if p.is_file()]
+        assert files and not [p for p in files if p.suffix in (".pt", ".pth", ".pkl", ".pickle")]
+        # every tensor is a memory map, everything else JSON
+        assert {p.suffix for p in files} <= {".json", ".memmap"}
+
+    def test_reads_components_as_plain_data(self, rave_run):
+        checkpoint = RunCheckpoint(rave_run)
+        assert checkpoint.read("counters")["frames"] == 600
+        assert checkpoint.read("config")["algorithm"] == "rave"
+        critic = checkpoint.read("optim_critic")
+        # 0.1 updates per frame once the 200 pretraining frames are stored
+        assert critic["state"][0]["step"].item() == 0.1 * (600 - 200)
+        with pytest.raises(KeyError, match="no component 'nope'"):
+            checkpoint.read("nope")
+
+    def test_a_checkpoint_from_before_the_redesign_is_refused(self, tmp_path):
+        old = tmp_path / "checkpoints"
+        (old / "000000000200").mkdir(parents=True)
+        (old / "000000000200" / "state.pt").write_bytes(b"not to be unpickled")
+        (old / "latest").write_text("000000000200")
+        with pytest.raises(ValueError, match="before the torchrl.checkpoint redesign"):
+            RunCheckpoint(tmp_path).latest()
+        with pytest.raises(ValueError, match="pickled state.pt"):
+            rave_mujoco.train(make_cfg(*TINY, f"resume={tmp_path}"), "unused")
+
+
+class TestLoadPolicy:
+    def test_the_loaded_policy_acts_as_the_trained_one(self, rave_run):
+        policy = load_policy(rave_run)
+        cfg, agent = load_agent(rave_run)
+        assert cfg.algorithm == "rave" and agent.world_model is not None
+        obs = torch.randn(5, 4)  # InvertedPendulum-v5
+        action = policy(TensorDict(observation=obs, batch_size=[5]))["action"]
+        assert action.shape == (5, 1) and (action.abs() <= 3.0).all()
+        # the trained weights, not a fresh initialisation: the checkpoint's actor params
+        saved = RunCheckpoint(rave_run).read("loss")
+        for key, value in saved.items():
+            if key.startswith("actor_network_params"):
+                name = tuple(key.split(".")[1:])
+                torch.testing.assert_close(agent.loss.actor_network_params.get(name), value)
+        fresh = load_policy(rave_run)(TensorDict(observation=obs, batch_size=[5]))["action"]
+        torch.testing.assert_close(fresh, action)
+
+
+class TestRunReader:
+    def test_a_resumed_run_reads_like_an_uninterrupted_one(self, tmp_path):
+        scalars = tmp_path / "rave" / "scalars" / "eval"
+        scalars.mkdir(parents=True)
+        # logged 200, 400, 600; killed; resumed from the 400 checkpoint: 600 and 800 again
+        rows = [(200, 1.0), (400, 2.0), (600, 3.0), (600, 3.5), (800, 4.0)]
+        (scalars / "return.csv").write_text("".join(f"{s},{v}\n" for s, v in rows))
+        steps, values = read_scalar(tmp_path, "eval/return")
+        np.testing.assert_array_equal(steps, [200, 400, 600, 800])
+        np.testing.assert_array_equal(values, [1.0, 2.0, 3.5, 4.0])
+        assert value_logged_at(tmp_path, "eval/return", 600) == 3.5
+        assert value_logged_at(tmp_path, "eval/return", 1000) is None
+        assert value_logged_at(tmp_path / "missing", "eval/return", 600) is None
+
+
+def test_no_sys_path_edits_anywhere():
+    offenders = [
+        str(p.relative_to(ROOT))
+        for p in ROOT.glob("*/**/*.py")
+        if ".venv" not in p.parts and re.search(r"sys\.path\.(insert|append)", p.read_text())
+    ]
+    assert offenders == [] or offenders == ["tests/test_training.py"]
+
+
+def test_recipe_files_stay_small():
+    sizes = {p.name: len(p.read_text().splitlines()) for p in (ROOT / "recipes").glob("*.py")}
+    assert max(sizes.values()) <= 300, sizes

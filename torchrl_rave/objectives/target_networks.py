@@ -1,0 +1,128 @@
+"""The target actor and target critics a value-expansion estimator evaluates."""
+
+from __future__ import annotations
+
+import torch
+from tensordict import TensorDict, TensorDictBase
+from tensordict.nn import TensorDictModuleBase
+
+from torchrl_rave.modules.tensor_call import PlannedCalls
+
+__all__ = ["TargetNetworks"]
+
+
+class TargetNetworks:
+    """Calls a deterministic actor and ``K`` critics on plain tensors with target parameters.
+
+    The parameters are read at call time: from a loss (``TargetNetworks.of_loss``, which
+    follows TorchRL's ``target_<name>_params`` so soft updates are seen without re-wiring),
+    from explicit ``actor_params`` / ``value_params``, or, with neither, the modules' own.
+    Critic parameters with a leading dimension are ``K`` stacked members (one batched
+    matmul per layer through :class:`~torchrl_rave.modules.TensorCall`, or ``torch.vmap``
+    when a module cannot be planned); plain parameters mean ``K = 1``.
+
+    Args:
+        actor_network (TensorDictModuleBase): ``observation -> action``.
+        value_network (TensorDictModuleBase): ``(observation, action) -> value``.
+
+    Keyword Args:
+        actor_params, value_params (TensorDictBase, optional): fixed parameters to use.
+        fast_calls (bool): plan the networks as tensor calls where possible. Defaults to ``True``.
+    """
+
+    def __init__(
+        self,
+        actor_network: TensorDictModuleBase,
+        value_network: TensorDictModuleBase,
+        *,
+        actor_params: TensorDictBase | None = None,
+        value_params: TensorDictBase | None = None,
+        fast_calls: bool = True,
+    ) -> None:
+        self.actor_network = actor_network
+        self.value_network = value_network
+        self._fixed = (actor_params, value_params)
+        self._loss = None
+        self._loss_names: tuple[str, str] | None = None
+        self.calls = PlannedCalls(fast_calls)
+
+    @classmethod
+    def of_loss(cls, loss_module, actor_network=None, fast_calls: bool = True) -> TargetNetworks:
+        """The target actor and critics of a TorchRL loss: ``qvalue_network`` (stacked,
+        ``TD3Loss``-style) or ``value_network`` (``DDPGLoss``, :class:`EnsembleDDPGLoss`)."""
+        actor = (
+            actor_network
+            if actor_network is not None
+            else getattr(loss_module, "actor_network", None)
+        )
+        if actor is None:
+            raise ValueError(
+                f"{type(loss_module).__name__} has no actor_network; pass actor_network= explicitly"
+            )
+        if "qvalue_network" in loss_module._modules or hasattr(
+            loss_module, "qvalue_network_params"
+        ):
+            critic = "qvalue_network"
+        elif hasattr(loss_module, "value_network_params"):
+            critic = "value_network"
+        else:
+            raise ValueError(
+                f"{type(loss_module).__name__} has neither a qvalue_network nor a value_network"
+            )
+        nets = cls(actor, getattr(loss_module, critic), fast_calls=fast_calls)
+        nets._loss = loss_module
+        nets._loss_names = ("target_actor_network_params", f"target_{critic}_params")
+        return nets
+
+    def params(self, target_params: TensorDictBase | None = None):
+        """``(actor_params, value_params)`` for this call."""
+        if target_params is not None and ("module", "0") in target_params.keys(True):
+            # DDPGLoss passes its actor-critic target parameters in this layout.
+            return target_params["module", "0"], target_params["module", "1"]
+        if self._loss is not None:
+            return tuple(getattr(self._loss, name) for name in self._loss_names)
+        return self._fixed
+
+    def wired_num_critics(self) -> int:
+        """``K`` of the wired critics, read from the loss's online parameters (reading its
+        target parameters before a target updater exists makes TorchRL warn)."""
+        if self._loss is not None:
+            return self.num_critics(getattr(self._loss, self._loss_names[1][len("target_") :]))
+        return self.num_critics(self._fixed[1])
+
+    def num_critics(self, value_params: TensorDictBase | None) -> int:
+        if value_params is None or value_params.batch_dims == 0:
+            return 1
+        return value_params.batch_size[0]
+
+    def policy(self, obs: torch.Tensor, params, keys) -> torch.Tensor:
+        """Actions ``[*B, A]`` for observations ``[*B, S]``."""
+        call = self.calls.get("actor", self.actor_network)
+        if call is not None:
+            return call(params, {keys.observation: obs})[keys.action]
+        td = TensorDict({keys.observation: obs}, batch_size=obs.shape[:-1])
+        if params is None:
+            return self.actor_network(td).get(keys.action)
+        with params.to_module(self.actor_network, preserve_module_state=False):
+            return self.actor_network(td).get(keys.action)
+
+    def critic(self, obs: torch.Tensor, action: torch.Tensor, params, keys) -> torch.Tensor:
+        """Critic values ``[K, *B]`` (``K = 1`` without stacked parameters)."""
+        net = self.value_network
+        stacked = params is not None and params.batch_dims >= 1
+        call = self.calls.get("critic", net, stacked)
+        if call is not None:
+            q = call(params, {keys.observation: obs, keys.action: action})[keys.value]
+            q = q.squeeze(-1)
+            return q if stacked else q.unsqueeze(0)
+
+        def one(o, a, p):
+            td = TensorDict({keys.observation: o, keys.action: a}, batch_size=o.shape[:-1])
+            if p is None:
+                return net(td).get(keys.value)
+            with p.to_module(net, preserve_module_state=False):
+                return net(td).get(keys.value)
+
+        if stacked:
+            return torch.vmap(one, (None, None, 0))(obs, action, params).squeeze(-1)
+        return one(obs, action, params).squeeze(-1).unsqueeze(0)

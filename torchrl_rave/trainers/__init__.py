@@ -1,0 +1,5 @@
+"""Training helpers that plug into any TorchRL loop or ``torchrl.trainers.Trainer``."""
+
+from torchrl_rave.trainers.world_model import WorldModelTrainer
+
+__all__ = ["WorldModelTrainer"]

@@ -1,0 +1,182 @@
+"""Trains the world model beside an agent: loss, optimiser, normalisers and pretraining."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import torch
+from tensordict import TensorDictBase
+from torchrl.data import ReplayBuffer
+from torchrl.trainers import Trainer, TrainerHookBase
+
+from torchrl_rave._checks import check_positive_int
+from torchrl_rave.modules.world_model import WorldModelEnsemble
+from torchrl_rave.objectives.world_model_loss import WorldModelEnsembleLoss
+
+__all__ = ["WorldModelTrainer"]
+
+
+class WorldModelTrainer(TrainerHookBase):
+    """Owns a :class:`~torchrl_rave.modules.WorldModelEnsemble`'s training schedule.
+
+    Two calls fit any collector loop:
+
+    - :meth:`extend` on every batch that enters the replay buffer: it merges the batch
+      into the model's input and target normalisers (the model is trained and queried in
+      normalised units, so skipping this leaves it on identity statistics).
+    - :meth:`step` once per agent update, with the replay buffer: the first call pretrains
+      the model (``pretrain_updates`` steps, paper: on the first ``F`` frames); after that
+      it takes one model step every ``train_every`` calls. Start agent updates (and so
+      these calls) once ``F`` frames are stored, e.g. with the collector's
+      ``init_random_frames``.
+
+    Each model step samples its own batch, computes :class:`WorldModelEnsembleLoss`
+    (transition + reward + termination) and takes one optimiser step. ``state_dict``
+    holds the optimiser and the schedule, so a resumed run continues it exactly.
+    As a :class:`~torchrl.trainers.TrainerHookBase`, :meth:`register` hooks the same two
+    calls into a TorchRL ``Trainer``.
+
+    Args:
+        world_model (WorldModelEnsemble): the ensemble to train.
+
+    Keyword Args:
+        lr (float): Adam learning rate. Defaults to 3e-4 (paper).
+        pretrain_updates (int): model steps taken at the first :meth:`step`. Defaults to 500.
+        train_every (int): one model step every this many :meth:`step` calls. Defaults to 1.
+        loss (WorldModelEnsembleLoss, optional): defaults to one on ``world_model``.
+        optimizer (torch.optim.Optimizer, optional): defaults to Adam over the model's
+            parameters.
+
+    Examples:
+        >>> from tensordict import TensorDict
+        >>> from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
+        >>> wm = WorldModelEnsemble(3, 1, num_models=2)
+        >>> trainer = WorldModelTrainer(wm, pretrain_updates=5)
+        >>> rb = TensorDictReplayBuffer(storage=LazyTensorStorage(100), batch_size=16)
+        >>> data = TensorDict(
+        ...     observation=torch.randn(50, 3), action=torch.rand(50, 1),
+        ...     next=TensorDict(observation=torch.randn(50, 3), reward=torch.randn(50, 1),
+        ...                     terminated=torch.zeros(50, 1, dtype=torch.bool), batch_size=[50]),
+        ...     batch_size=[50])
+        >>> _ = rb.extend(data)
+        >>> trainer.extend(data)          # normalisers, on every batch that enters the buffer
+        >>> out = trainer.step(rb)        # first call: 5 pretraining steps, then one step
+        >>> trainer.updates, sorted(out.keys())[:3]
+        (6, ['loss_reward', 'loss_termination', 'loss_transition'])
+    """
+
+    def __init__(
+        self,
+        world_model: WorldModelEnsemble,
+        *,
+        lr: float = 3e-4,
+        pretrain_updates: int = 500,
+        train_every: int = 1,
+        loss: WorldModelEnsembleLoss | None = None,
+        optimizer: torch.optim.Optimizer | None = None,
+    ) -> None:
+        check_positive_int("pretrain_updates", pretrain_updates, minimum=0)
+        check_positive_int("train_every", train_every)
+        if float(lr) <= 0:
+            raise ValueError(f"lr must be > 0, got {lr!r}")
+        self.world_model = world_model
+        self.loss = loss if loss is not None else WorldModelEnsembleLoss(world_model)
+        # fused Adam: one kernel per step instead of a Python loop over tensors
+        self.optimizer = optimizer or torch.optim.Adam(
+            list(world_model.parameters()), lr=lr, fused=True
+        )
+        self.pretrain_updates = pretrain_updates
+        self.train_every = train_every
+        self.pretrained = False
+        self.calls = 0  # step() calls: one per agent update
+        self.updates = 0  # optimiser steps taken
+        self._update = self._update_eager
+
+    # ---------------------------------------------------------------- the loop
+    def extend(self, data: TensorDictBase) -> None:
+        """Merges a batch of real transitions into the model's normalisers."""
+        self.world_model.update_normalizers_from(data)
+
+    def step(self, source: ReplayBuffer | TensorDictBase) -> TensorDictBase | None:
+        """Call once per agent update; returns the last model step's loss outputs
+        (detached), or ``None`` when this call took no step.
+
+        Args:
+            source: the replay buffer (each model step samples its own batch) or a batch
+                (every step of this call, pretraining included, uses it).
+        """
+        out = self.pretrain(source)
+        if self.calls % self.train_every == 0:
+            out = self.update(self._batch(source))
+        self.calls += 1
+        return out
+
+    def pretrain(self, source: ReplayBuffer | TensorDictBase) -> TensorDictBase | None:
+        """The ``pretrain_updates`` steps, once; :meth:`step` calls it, and a loop may call
+        it earlier (as soon as ``F`` frames are stored). Returns the last step's outputs."""
+        out = None
+        if not self.pretrained:
+            for _ in range(self.pretrain_updates):
+                out = self.update(self._batch(source))
+            self.pretrained = True
+        return out
+
+    def update(self, batch: TensorDictBase) -> TensorDictBase:
+        """One optimiser step of the model on ``batch``; returns the loss outputs."""
+        self.updates += 1
+        return self._update(batch)
+
+    def compile(self, mode: str | None = None) -> WorldModelTrainer:
+        """Runs :meth:`update`'s loss, backward and optimiser step through ``torch.compile``."""
+        self._update = torch.compile(self._update_eager, mode=mode)
+        return self
+
+    @staticmethod
+    def _batch(source) -> TensorDictBase:
+        return source.sample() if isinstance(source, ReplayBuffer) else source
+
+    def _update_eager(self, batch: TensorDictBase) -> TensorDictBase:
+        out = self.loss(batch)
+        self.optimizer.zero_grad()
+        (out["loss_transition"] + out["loss_reward"] + out["loss_termination"]).backward()
+        self.optimizer.step()
+        return out.detach()
+
+    # ------------------------------------------------------------ checkpoints
+    def state_dict(self) -> dict[str, Any]:
+        """The optimiser and the schedule (the model's weights live in its own ``state_dict``)."""
+        return {
+            "optimizer": self.optimizer.state_dict(),
+            "pretrained": self.pretrained,
+            "calls": self.calls,
+            "updates": self.updates,
+        }
+
+    def load_state_dict(self, state_dict: dict[str, Any]) -> None:
+        self.optimizer.load_state_dict(state_dict["optimizer"])
+        self.pretrained = bool(state_dict["pretrained"])
+        self.calls = int(state_dict["calls"])
+        self.updates = int(state_dict["updates"])
+
+    # ------------------------------------------------------------ TorchRL Trainer
+    def register(
+        self,
+        trainer: Trainer,
+        name: str = "world_model_trainer",
+        replay_buffer: ReplayBuffer | None = None,
+    ) -> None:
+        """Hooks :meth:`extend` into ``batch_process`` (every collected batch) and
+        :meth:`step` into ``process_optim_batch`` (every agent update; the model samples
+        ``replay_buffer`` when given, else trains on the agent's batch)."""
+
+        def extend(batch: TensorDictBase) -> TensorDictBase:
+            self.extend(batch.reshape(-1))
+            return batch
+
+        def step(batch: TensorDictBase) -> TensorDictBase:
+            self.step(replay_buffer if replay_buffer is not None else batch)
+            return batch
+
+        trainer.register_op("batch_process", extend)
+        trainer.register_op("process_optim_batch", step)
+        trainer.register_module(name, self)

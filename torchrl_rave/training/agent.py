@@ -1,0 +1,301 @@
+"""Builds the agent of any ``algorithm=``: env, policies, loss, optimisers, world model."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import torch
+from omegaconf import DictConfig, OmegaConf
+from tensordict import TensorDictBase
+from tensordict.nn import (
+    NormalParamExtractor,
+    TensorDictModule,
+    TensorDictModuleBase,
+    TensorDictSequential,
+)
+from torch import nn
+from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
+from torchrl.envs import (
+    DoubleToFloat,
+    GymEnv,
+    RewardScaling,
+    RewardSum,
+    StepCounter,
+    TransformedEnv,
+)
+from torchrl.envs.utils import ExplorationType
+from torchrl.modules import MLP, ProbabilisticActor, TanhModule, TanhNormal, ValueOperator
+from torchrl.objectives import LossModule, SACLoss, SoftUpdate, TD3Loss, ValueEstimators
+
+from torchrl_rave.modules import EpsilonGaussianModule, WorldModelEnsemble
+from torchrl_rave.objectives import (
+    EnsembleDDPGLoss,
+    ForeachSoftUpdate,
+    WorldModelEnsembleLoss,
+    make_value_expansion_estimator,
+)
+from torchrl_rave.trainers import WorldModelTrainer
+from torchrl_rave.training.config import ALGORITHMS, Algorithm, num_critics, replay_buffer_size
+
+__all__ = [
+    "Agent",
+    "critic_loss_key",
+    "critic_mean",
+    "load_agent",
+    "load_policy",
+    "make_agent",
+    "make_env",
+    "make_replay_buffer",
+]
+
+
+@dataclass
+class Agent:
+    """Everything ``algorithm=`` selects, built by :func:`make_agent`."""
+
+    algorithm: Algorithm
+    actor: TensorDictModuleBase  # the deterministic policy (evaluation)
+    policy: TensorDictModuleBase  # the exploration policy the collector runs
+    loss: LossModule
+    target_updater: SoftUpdate
+    optimizers: dict[str, torch.optim.Optimizer]
+    world_model: WorldModelEnsemble | None = None
+    world_model_trainer: WorldModelTrainer | None = None
+
+    def state_components(self) -> dict:
+        """The agent's checkpoint components (objects with ``state_dict``)."""
+        parts = {"loss": self.loss, "policy": self.policy, "world_model": self.world_model}
+        parts["world_model_trainer"] = self.world_model_trainer
+        parts.update({f"optim_{name}": opt for name, opt in self.optimizers.items()})
+        return {name: part for name, part in parts.items() if part is not None}
+
+
+def make_agent(cfg: DictConfig, env, device: torch.device | str = "cpu") -> Agent:
+    """The agent of ``cfg.algorithm`` for ``env``'s specs, on ``device``; the one builder
+    the recipe, the analyses and the benchmark share."""
+    algo = ALGORITHMS[cfg.algorithm]
+    actor, policy = make_actor(cfg, env, algo)
+    critic = make_critic(cfg, env)
+    world_model = make_world_model(cfg, env).to(device) if algo.model_based else None
+    loss, updater = make_loss(cfg, env, algo, actor, critic, world_model)
+    loss, policy = loss.to(device), policy.to(device)
+    return Agent(
+        algorithm=algo,
+        actor=actor,
+        policy=policy,
+        loss=loss,
+        target_updater=updater,
+        optimizers=make_optimizers(cfg, loss),
+        world_model=world_model,
+        world_model_trainer=make_world_model_trainer(cfg, world_model),
+    )
+
+
+def load_agent(run_dir: str | Path, device: torch.device | str = "cpu") -> tuple[DictConfig, Agent]:
+    """The config and the agent of a run directory's latest checkpoint (nothing in it is
+    unpickled or executed)."""
+    from torchrl_rave.training.checkpoint import RunCheckpoint
+
+    checkpoint = RunCheckpoint(run_dir)
+    cfg = OmegaConf.create(checkpoint.config())
+    env = make_env(cfg, torch.device(device))
+    try:
+        agent = make_agent(cfg, env, device)
+    finally:
+        env.close()
+    parts = {k: v for k, v in agent.state_components().items() if not k.startswith("optim")}
+    if agent.world_model_trainer is not None:
+        del parts["world_model_trainer"]
+    from torchrl.checkpoint import Checkpoint
+
+    Checkpoint(**parts).load(checkpoint.latest(), components=list(parts))
+    return cfg, agent
+
+
+def load_policy(
+    run_dir: str | Path, device: torch.device | str = "cpu", *, explore: bool = False
+) -> TensorDictModuleBase:
+    """A ready TorchRL policy from a run directory: the trained deterministic actor (or,
+    with ``explore=True``, the exploration policy the run collected with).
+
+    Examples:
+        >>> policy = load_policy("outputs/2026-11-23/10-00-00")  # doctest: +SKIP
+        >>> env.rollout(1000, policy)  # doctest: +SKIP
+    """
+    _, agent = load_agent(run_dir, device)
+    return agent.policy if explore else agent.actor
+
+
+def make_env(cfg: DictConfig, device: torch.device) -> TransformedEnv:
+    env = TransformedEnv(
+        GymEnv(cfg.env.name, device=device, **(cfg.env.kwargs or {})), DoubleToFloat()
+    )
+    env.append_transform(StepCounter())
+    env.append_transform(RewardSum())  # before the scaling: returns stay in env units
+    if cfg.env.reward_scale != 1.0:
+        env.append_transform(RewardScaling(loc=0.0, scale=cfg.env.reward_scale))
+    return env
+
+
+def _mlp(cfg: DictConfig, in_features: int, out_features: int, cells: int) -> MLP:
+    # num_layers counts FC layers with the output layer (paper appendix A: 4)
+    return MLP(
+        in_features=in_features,
+        out_features=out_features,
+        num_cells=[cells] * (cfg.network.num_layers - 1),
+        activation_class=nn.ReLU,
+    )
+
+
+def make_actor(cfg: DictConfig, env, algo: Algorithm):
+    """The policy and the exploration policy the collector runs.
+
+    Deterministic policies end in :class:`~torchrl.modules.TanhModule`, which maps onto the
+    action box; SAC's policy is a tanh-Gaussian and explores by sampling.
+    """
+    spec = env.action_spec
+    S, A = env.observation_spec["observation"].shape[-1], spec.shape[-1]
+    if algo.loss == "sac":
+        net = nn.Sequential(_mlp(cfg, S, 2 * A, cfg.network.actor_cells), NormalParamExtractor())
+        actor = ProbabilisticActor(
+            TensorDictModule(net, in_keys=["observation"], out_keys=["loc", "scale"]),
+            in_keys=["loc", "scale"],
+            spec=spec,
+            distribution_class=TanhNormal,
+            distribution_kwargs={"low": spec.space.low, "high": spec.space.high},
+            default_interaction_type=ExplorationType.RANDOM,
+        )
+        return actor, actor
+    actor = TensorDictSequential(
+        TensorDictModule(
+            _mlp(cfg, S, A, cfg.network.actor_cells), in_keys=["observation"], out_keys=["param"]
+        ),
+        TanhModule(in_keys=["param"], out_keys=["action"], spec=spec),
+    )
+    noise = EpsilonGaussianModule(
+        spec, sigma=cfg.exploration.sigma, epsilon=cfg.exploration.epsilon
+    )
+    return actor, TensorDictSequential(actor, noise)
+
+
+def make_critic(cfg: DictConfig, env) -> ValueOperator:
+    S = env.observation_spec["observation"].shape[-1]
+    A = env.action_spec.shape[-1]
+    return ValueOperator(
+        _mlp(cfg, S + A, 1, cfg.network.critic_cells), in_keys=["observation", "action"]
+    )
+
+
+def make_world_model(cfg: DictConfig, env) -> WorldModelEnsemble:
+    w = cfg.world_model
+    return WorldModelEnsemble.from_specs(
+        env.observation_spec,
+        env.action_spec,
+        num_models=w.num_models,
+        transition_cells=w.transition_cells,
+        transition_layers=w.transition_layers,
+        reward_cells=w.reward_cells,
+        reward_layers=w.reward_layers,
+        termination_cells=w.termination_cells,
+        termination_layers=w.termination_layers,
+    )
+
+
+def make_loss(cfg: DictConfig, env, algo: Algorithm, actor, critic, world_model):
+    """The TorchRL loss with its target estimator, and the soft target updater."""
+    K = num_critics(cfg, algo)
+    if algo.loss == "sac":
+        loss = SACLoss(
+            actor, critic, num_qvalue_nets=K, loss_function="l2", action_spec=env.action_spec
+        )
+    elif algo.loss == "td3":
+        loss = TD3Loss(
+            actor,
+            critic,
+            action_spec=env.action_spec,
+            num_qvalue_nets=K,
+            policy_noise=cfg.td3.policy_noise,
+            noise_clip=cfg.td3.noise_clip,
+            loss_function="l2",
+        )
+    else:
+        loss = EnsembleDDPGLoss(actor, critic, num_value_nets=K)
+    if algo.estimator is None:
+        loss.make_value_estimator(ValueEstimators.TD0, gamma=cfg.optim.gamma)
+    else:
+        e = cfg.estimator
+        # check_inputs=False: batches were checked for NaN/inf on their way into the buffer
+        kwargs = dict(
+            world_model=world_model, gamma=cfg.optim.gamma, horizon=e.horizon, check_inputs=False
+        )
+        if algo.estimator == "rave":
+            kwargs.update(
+                alpha=e.alpha,
+                adaptive_alpha=algo.adaptive_alpha,
+                alpha_error_scale=e.alpha_error_scale,
+            )
+        loss.make_value_estimator(make_value_expansion_estimator(algo.estimator, loss, **kwargs))
+    return loss, ForeachSoftUpdate(loss, tau=cfg.optim.tau)
+
+
+def critic_params(loss):
+    """The critics' parameters: ``value_network`` (EnsembleDDPGLoss) or ``qvalue_network``."""
+    if isinstance(loss, EnsembleDDPGLoss):
+        return loss.value_network_params, loss.value_network
+    return loss.qvalue_network_params, loss.qvalue_network
+
+
+def critic_loss_key(loss) -> str:
+    return "loss_value" if isinstance(loss, EnsembleDDPGLoss) else "loss_qvalue"
+
+
+def make_optimizers(cfg: DictConfig, loss) -> dict[str, torch.optim.Optimizer]:
+    # fused Adam: one kernel per step instead of a Python loop over tensors (3x on CPU)
+    def adam(params, lr):
+        return torch.optim.Adam(list(params), lr=lr, fused=True)
+
+    optimizers = {
+        "actor": adam(loss.actor_network_params.values(True, True), cfg.optim.lr_actor),
+        "critic": adam(critic_params(loss)[0].values(True, True), cfg.optim.lr_critic),
+    }
+    if isinstance(loss, SACLoss):
+        optimizers["alpha"] = adam([loss.log_alpha], cfg.optim.lr_alpha)
+    return optimizers
+
+
+def make_world_model_trainer(
+    cfg: DictConfig, world_model: WorldModelEnsemble | None
+) -> WorldModelTrainer | None:
+    """The world model's loss, optimiser and pretraining schedule (model-based algorithms)."""
+    if world_model is None:
+        return None
+    w = cfg.world_model
+    trainer = WorldModelTrainer(
+        world_model,
+        lr=w.lr,
+        pretrain_updates=w.pretrain_updates,
+        train_every=w.train_every,
+        # the collector's batches are checked for NaN/inf before they reach the buffer
+        loss=WorldModelEnsembleLoss(world_model, check_finite=False),
+    )
+    if cfg.compile.enabled:
+        trainer.compile(cfg.compile.mode)
+    return trainer
+
+
+def make_replay_buffer(cfg: DictConfig, device) -> TensorDictReplayBuffer:
+    return TensorDictReplayBuffer(
+        storage=LazyTensorStorage(replay_buffer_size(cfg), device=device),
+        batch_size=cfg.replay_buffer.batch_size,
+    )
+
+
+def critic_mean(loss, td: TensorDictBase) -> torch.Tensor:
+    """``Q(s, a)`` ``[*B]`` averaged over the loss's stacked critics (``[K, ...]`` params)."""
+    params, network = critic_params(loss)
+    values = []
+    for k in range(params.batch_size[0]):
+        with params[k].to_module(network):
+            values.append(network(td.clone())["state_action_value"].squeeze(-1))
+    return torch.stack(values).mean(0)

@@ -1,0 +1,209 @@
+"""Collectors for the learner: in-process, worker processes or Ray actors, with weight pushes."""
+
+from __future__ import annotations
+
+import functools
+import logging
+import signal
+import threading
+from collections.abc import Callable, Iterator
+from pathlib import Path
+
+import torch
+from omegaconf import DictConfig
+from tensordict import TensorDict, TensorDictBase
+from torchrl.collectors import Collector, MultiSyncCollector
+
+from torchrl_rave.training.agent import make_actor, make_env
+from torchrl_rave.training.config import ALGORITHMS, check_ray_fits
+
+
+def make_collector(cfg: DictConfig, env, policy, device, frames_done: int = 0):
+    """A collector for the frames still to go (``frames_done`` > 0 when resuming).
+
+    ``collector.backend=direct`` steps ``env`` in this process. ``process`` runs
+    ``collector.num_workers`` env processes through TorchRL's ``MultiSyncCollector``, and
+    ``ray`` as many Ray actors through TorchRL's ``RayCollector`` (see
+    :func:`make_ray_collector`). Workers build their own env from the config, run the
+    exploration policy on the CPU and collect ``frames_per_batch / num_workers`` frames per
+    batch; the batch holds every worker's share, so the learner's update-to-data ratio is
+    exact. :func:`push_policy_weights` sends the learner's weights to the workers.
+    """
+    remaining = cfg.collector.total_frames - frames_done
+    common = dict(
+        frames_per_batch=min(cfg.collector.frames_per_batch, remaining),
+        total_frames=remaining,
+        init_random_frames=max(0, cfg.collector.init_random_frames - frames_done),
+    )
+    if cfg.collector.backend == "direct":
+        return Collector(
+            env,
+            policy,
+            device=device,
+            auto_register_policy_transforms=False,  # our policies keep no recurrent state
+            **common,
+        )
+    workers = cfg.collector.num_workers
+    common["frames_per_batch"] -= common["frames_per_batch"] % workers
+    cpu = torch.device("cpu")
+    if cfg.collector.backend == "ray":
+        collector = make_ray_collector(cfg, common)
+    else:
+        collector = MultiSyncCollector(
+            [functools.partial(make_env, cfg, cpu)] * workers,
+            policy,
+            device=cpu,  # actors run the exploration policy on the CPU
+            storing_device=cpu,
+            cat_results="stack",
+            **common,
+        )
+    # distinct, reproducible streams per worker; a resumed run does not replay old episodes
+    collector.set_seed(cfg.env.seed + frames_done)
+    push_policy_weights(collector, policy)
+    return collector
+
+
+def worker_policy(cfg: DictConfig):
+    """The exploration policy of a Ray collector worker, built on its CPU from the config;
+    its weights come from the learner (:func:`push_policy_weights`)."""
+    torch.set_num_threads(max(1, int(cfg.ray.worker_cpus)))
+    env = make_env(cfg, torch.device("cpu"))
+    try:
+        return make_actor(cfg, env, ALGORITHMS[cfg.algorithm])[1]
+    finally:
+        env.close()
+
+
+class RayWorkerCollector(Collector):
+    """TorchRL's ``Collector`` with a one-line repr: Ray prefixes every line a worker logs
+    with its actor's repr, which for a ``Collector`` spans the whole env and policy."""
+
+    def __repr__(self) -> str:
+        return f"{type(self).__name__}(worker={getattr(self, 'worker_idx', '?')})"
+
+
+def make_ray_collector(cfg: DictConfig, common: dict):
+    """TorchRL's ``RayCollector``: ``collector.num_workers`` Ray actors, each a CPU
+    ``Collector`` with its own env and exploration policy, collecting in lockstep.
+
+    With Ray not yet started in this process, ``ray.address=null`` starts a local instance
+    (``ray.num_cpus`` CPUs) and ``auto`` or a cluster address joins one. Each actor reserves
+    ``ray.worker_cpus`` CPUs, ``ray.worker_memory`` bytes and ``ray.worker_resources``.
+    Weights travel by TorchRL's Ray weight-sync scheme. Every node needs torchrl-rave and
+    the env's packages installed; this module's factories travel with the actors by value.
+    """
+    import sys
+    import warnings
+
+    import ray
+    import ray.cloudpickle
+    from torchrl.collectors.distributed import RayCollector
+
+    # the env and policy factories live in this recipe module, which Ray workers cannot
+    # import by name: pickle them by value
+    ray.cloudpickle.register_pickle_by_value(sys.modules[__name__])
+    r = cfg.ray
+    ray_init = {"num_cpus": r.num_cpus, "include_dashboard": False}
+    if r.address is not None and not ray.is_initialized():
+        # join the cluster here (a driver connection, dropped when this process exits) so
+        # that its resources are checked before any actor waits for them
+        ray.init(address=r.address)
+        check_ray_fits(cfg, ray.cluster_resources(), f"the Ray cluster at {r.address}")
+    remote = {"num_cpus": r.worker_cpus, "num_gpus": 0}  # actors explore on the CPU
+    if r.worker_memory is not None:
+        remote["memory"] = r.worker_memory
+    if r.worker_resources:
+        remote["resources"] = dict(r.worker_resources)
+    cpu = torch.device("cpu")
+    with warnings.catch_warnings():
+        # the policy comes from a factory; its weights are pushed explicitly
+        warnings.filterwarnings("ignore", message="The policy is not an nn.Module")
+        return RayCollector(
+            [functools.partial(make_env, cfg, cpu)] * cfg.collector.num_workers,
+            policy_factory=functools.partial(worker_policy, cfg),
+            collector_class=RayWorkerCollector,
+            sync=True,  # one share from every worker per batch
+            device=cpu,
+            storing_device=cpu,
+            ray_init_config=ray_init,
+            remote_configs=remote,
+            collector_kwargs={"auto_register_policy_transforms": False},
+            **common,
+        )
+
+
+def push_policy_weights(collector, policy) -> None:
+    """Sends ``policy``'s current weights to every collector worker (TorchRL's weight-sync
+    schemes; a no-op for the direct backend, which runs ``policy`` itself)."""
+    if isinstance(collector, Collector):
+        return
+    collector.update_policy_weights_(TensorDict.from_module(policy).data)
+
+
+class CollectorFailure(RuntimeError):
+    """A collector worker raised or died; the run stopped with a checkpoint."""
+
+
+class NonFiniteEnvOutput(RuntimeError):
+    """The environment produced NaN or infinite observations or rewards."""
+
+
+def check_finite(data: TensorDictBase) -> str | None:
+    """Names the first collected entry holding NaN/inf, or ``None`` when all are finite."""
+    for key in ("observation", ("next", "observation"), ("next", "reward")):
+        if not bool(torch.isfinite(data[key]).all()):
+            return str(key)
+    return None
+
+
+class StopRequest:
+    """SIGINT/SIGTERM ask the loop to checkpoint and stop at the end of the current batch;
+    a second signal stops at once."""
+
+    def __init__(self) -> None:
+        self.requested = False
+        self._previous = {}
+
+    def __enter__(self) -> StopRequest:
+        if hasattr(signal, "SIGTERM") and threading.current_thread() is threading.main_thread():
+            for sig in (signal.SIGINT, signal.SIGTERM):
+                self._previous[sig] = signal.signal(sig, self._handle)
+        return self
+
+    def _handle(self, signum, frame) -> None:
+        self.requested = True
+        signal.signal(signum, self._previous[signum])
+
+    def __exit__(self, *exc) -> None:
+        for sig, handler in self._previous.items():
+            signal.signal(sig, handler)
+
+
+def guarded_batches(
+    collector, cfg: DictConfig, save_checkpoint: Callable[[], object], frames: Callable[[], int]
+) -> Iterator[TensorDictBase]:
+    """The collector's batches. A worker that raises or dies stops the run cleanly: the
+    state after the last complete batch is checkpointed (``save_checkpoint()``), the
+    collector is shut down and :class:`CollectorFailure` names the env, the frame and the
+    cause. (With the direct backend the env's own error propagates.)"""
+    iterator = iter(collector)
+    while True:
+        try:
+            data = next(iterator)
+        except StopIteration:
+            return
+        except Exception as err:
+            if cfg.collector.backend == "direct":
+                raise
+            where = save_checkpoint()
+            try:
+                collector.shutdown()
+            except Exception:  # noqa: BLE001 (a dead worker may fail the shutdown too)
+                logging.getLogger(__name__).warning("collector shutdown failed", exc_info=True)
+            raise CollectorFailure(
+                f"a {cfg.collector.backend} collector worker running {cfg.env.name} failed "
+                f"after frame {frames()}: {type(err).__name__}: {err}. The run stopped; "
+                f"checkpoint {where} holds everything up to that frame: resume with "
+                f"resume={Path(str(where)).parents[1]}"
+            ) from err
+        yield data
