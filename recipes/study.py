@@ -3,6 +3,10 @@
 python recipes/study.py run --jobs 2 --commit      # the cells still missing, two at a time
 python recipes/study.py report                     # tables and figures from results/ only
 
+To keep editing the project while cells run, run them from a frozen checkout of one commit
+and point ``--results`` at the working repository: ``git worktree add ../study HEAD``, then
+``PYTHONPATH=../study python ../study/recipes/study.py run --commit --results results``.
+
 A study (``recipes/study/<name>.yaml``) is a grid of tasks x algorithms x seeds of ordinary
 ``rave_mujoco.py`` runs at one frame budget. Runs live under ``--out`` (not kept); as each
 cell finishes, its metric CSVs are copied to ``results/<name>/<task>/<algorithm>/seed<k>/``
@@ -46,20 +50,37 @@ def result_dir(results: Path, study, task: str, algorithm: str, seed: int) -> Pa
     return results / study.name / task / algorithm / f"seed{seed}"
 
 
-def git(*args: str) -> str:
+def git(repo: Path, *args: str) -> str:
     return subprocess.run(
-        ["git", *args], cwd=ROOT, capture_output=True, text=True, check=True
+        ["git", "-C", str(repo), *args], capture_output=True, text=True, check=True
     ).stdout.strip()
 
 
+def commit_cell(dest: Path) -> None:
+    """Commits one cell's results, and only them, in the repository holding them; a busy
+    index (another git command) is retried, and a failure leaves the files for later."""
+    repo = Path(git(dest, "rev-parse", "--show-toplevel"))
+    rel = str(dest.resolve().relative_to(repo))
+    for attempt in range(5):
+        try:
+            git(repo, "add", "--", rel)
+            git(repo, "commit", "-q", "-m", f"results: {rel.removeprefix('results/')}", "--", rel)
+            return
+        except subprocess.CalledProcessError as err:
+            print(f"git commit of {rel} failed ({err.stderr.strip()}); retrying", flush=True)
+            time.sleep(5 * (attempt + 1))
+    print(f"{rel} is not committed: commit it by hand", flush=True)
+
+
 def export(run: Cell, dest: Path, started: float, commit: bool) -> None:
-    """Copies a finished cell's metric CSVs and writes its cell.json; commits them."""
+    """Copies a finished cell's metric CSVs and writes its cell.json (the commit of the
+    code that ran it, read from this script's checkout); commits them."""
     for csv in run.run_dir.glob("*/scalars/**/*.csv"):
         target = dest / csv.relative_to(run.run_dir)
         target.parent.mkdir(parents=True, exist_ok=True)
         shutil.copyfile(csv, target)
     info = {
-        "commit": git("rev-parse", "HEAD"),
+        "commit": git(ROOT, "rev-parse", "HEAD"),
         "frames": run.frames,
         "overrides": list(run.overrides),
         "config": RunCheckpoint(run.run_dir).config(),
@@ -68,9 +89,7 @@ def export(run: Cell, dest: Path, started: float, commit: bool) -> None:
     }
     (dest / "cell.json").write_text(json.dumps(info, indent=1) + "\n")
     if commit:
-        rel = dest.relative_to(ROOT)
-        git("add", "--", str(rel))
-        git("commit", "-q", "-m", f"results: {rel.relative_to('results')}", "--", str(rel))
+        commit_cell(dest)
 
 
 def run(args) -> None:
