@@ -183,3 +183,21 @@ def test_summing_every_output_entry_gives_the_loss_gradients():
     assert len(grads[0]) == len(grads[1]) > 0
     for a, b in zip(*grads, strict=True):
         torch.testing.assert_close(a, b)
+
+
+@pytest.mark.parametrize("shape", [(12,), (3, 4), (4, 3)])
+@pytest.mark.parametrize("fast_calls", [True, False])
+@pytest.mark.parametrize("estimator", ["td0", "rave"])
+def test_any_batch_shape_equals_the_flattened_batch(shape, fast_calls, estimator):
+    """[B], [B1, B2] and a leading dimension equal to K (4 x 3 with K = 4, which a
+    shape-blind planned call would read as [K, M, F]) give the flattened batch's losses."""
+    flat = batch(B=12, terminal=(2, 7))
+    outs = []
+    for data in (flat.clone(), flat.clone().reshape(shape)):
+        loss = make_loss(4, fast_calls, estimator)
+        torch.manual_seed(9)  # the same sampled rollouts for RAVE
+        outs.append(loss(data))
+        assert data["td_error"].shape == data.batch_size
+    for key in ("loss_value", "loss_actor"):
+        torch.testing.assert_close(outs[1][key], outs[0][key])
+    torch.testing.assert_close(outs[1]["pred_value"].reshape(4, 12), outs[0]["pred_value"])

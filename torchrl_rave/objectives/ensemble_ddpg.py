@@ -195,23 +195,32 @@ class EnsembleDDPGLoss(LossModule):
         return self.value_network_params.detach()
 
     def _actions(self, source, params) -> torch.Tensor:
-        """The actor's action for the inputs ``source(key)`` under ``params``."""
+        """The actor's action ``[*B, A]`` for the inputs ``source(key)`` under ``params``."""
         inputs = {k: source(k) for k in self.actor_network.in_keys}
+        batch = inputs[self.actor_network.in_keys[0]].shape[:-1]
         call = self._calls.get("actor", self.actor_network)
         if call is not None:
-            return call(params, inputs)[self.tensor_keys.action]
-        td = TensorDict(inputs, batch_size=inputs[self.actor_network.in_keys[0]].shape[:-1])
+            # planned calls take rows [M, F]: any batch shape is flattened and restored
+            flat = {k: v.reshape(-1, v.shape[-1]) for k, v in inputs.items()}
+            action = call(params, flat)[self.tensor_keys.action]
+            return action.reshape(*batch, action.shape[-1])
+        td = TensorDict(inputs, batch_size=batch)
         with params.to_module(self.actor_network, preserve_module_state=False):
             return self.actor_network(td).get(self.tensor_keys.action)
 
     def _values(self, source, action: torch.Tensor, params) -> torch.Tensor:
         """``[K, *B]`` values of the K critics (stacked ``params``) at ``action``."""
         keys = self.tensor_keys
-        inputs = {k: action if k == keys.action else source(k) for k in self.value_network.in_keys}
+        inputs = {
+            k: action if k == keys.action else source(k) for k in self.value_network.in_keys
+        }
+        batch = action.shape[:-1]
         call = self._calls.get("critic", self.value_network, stacked=True)
         if call is not None:
-            return call(params, inputs)[keys.state_action_value].squeeze(-1)
-        td = TensorDict(inputs, batch_size=action.shape[:-1])
+            flat = {k: v.reshape(-1, v.shape[-1]) for k, v in inputs.items()}
+            q = call(params, flat)[keys.state_action_value]  # [K, M, 1]
+            return q.reshape(q.shape[0], *batch)
+        td = TensorDict(inputs, batch_size=batch)
         td = td.expand(self.num_value_nets, *td.batch_size)
         return self._vmap_value_network(td, params).get(keys.state_action_value).squeeze(-1)
 
