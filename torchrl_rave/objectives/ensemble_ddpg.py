@@ -211,9 +211,7 @@ class EnsembleDDPGLoss(LossModule):
     def _values(self, source, action: torch.Tensor, params) -> torch.Tensor:
         """``[K, *B]`` values of the K critics (stacked ``params``) at ``action``."""
         keys = self.tensor_keys
-        inputs = {
-            k: action if k == keys.action else source(k) for k in self.value_network.in_keys
-        }
+        inputs = {k: action if k == keys.action else source(k) for k in self.value_network.in_keys}
         batch = action.shape[:-1]
         call = self._calls.get("critic", self.value_network, stacked=True)
         if call is not None:
