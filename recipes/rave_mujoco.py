@@ -40,6 +40,7 @@ from torchrl_rave.training.collect import (
     guarded_batches,
     make_collector,
     push_policy_weights,
+    stop_run,
 )
 from torchrl_rave.training.config import check_config, check_resumable, replay_buffer_size
 from torchrl_rave.training.evaluate import evaluate, make_logger
@@ -113,21 +114,21 @@ def train(cfg: DictConfig, run_dir: str) -> dict[str, float]:
             collector = make_collector(cfg, env, agent.policy, device, counters["frames"])
             synced_at = counters["updates"]  # the workers start with the current weights
             t_collect = time.perf_counter()
-            for data in guarded_batches(
-                collector, cfg, save_checkpoint, lambda: counters["frames"]
-            ):
+            batches = guarded_batches(
+                collector, cfg, save_checkpoint, lambda: counters["frames"], run_dir
+            )
+            for data in batches:
                 data = data.reshape(-1)
                 collect_s = time.perf_counter() - t_collect
                 bad = check_finite(data)
                 if bad is not None:
-                    where = save_checkpoint()
-                    collector.shutdown()
+                    where = stop_run(collector, save_checkpoint)
                     raise NonFiniteEnvOutput(
                         f"{cfg.env.name} produced NaN/inf in {bad!r} within frames "
                         f"{counters['frames']}-{counters['frames'] + data.numel()}; the run "
-                        f"stopped before that batch reached the replay buffer. Checkpoint "
-                        f"{where} (frame {counters['frames']}) is intact: fix the env and "
-                        f"rerun with resume={run_dir}"
+                        f"stopped before that batch reached the replay buffer; {where} "
+                        f"(frame {counters['frames']}): fix the env and rerun with "
+                        f"resume={run_dir}"
                     )
                 rb.extend(data)
                 if agent.world_model_trainer is not None:

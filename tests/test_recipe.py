@@ -184,22 +184,22 @@ class TestConfigErrors:
 
 
 class _NaNAfter(gym.Wrapper):
-    """Returns a NaN observation from the 150th step on."""
+    """Returns a NaN observation from the ``after``-th step on."""
 
-    def __init__(self, env):
+    def __init__(self, env, after: int):
         super().__init__(env)
-        self.steps = 0
+        self.steps, self.after = 0, after
 
     def step(self, action):
         obs, reward, terminated, truncated, info = self.env.step(action)
         self.steps += 1
-        if self.steps >= 150:
+        if self.steps >= self.after:
             obs = np.full_like(obs, np.nan)
         return obs, reward, terminated, truncated, info
 
 
-def _nan_pendulum():
-    return _NaNAfter(gym.make("InvertedPendulum-v5"))
+def _nan_pendulum(after: int = 150):
+    return _NaNAfter(gym.make("InvertedPendulum-v5"), after)
 
 
 gym.register("NaNInvertedPendulum-v0", entry_point=_nan_pendulum, max_episode_steps=1000)
@@ -218,6 +218,22 @@ class TestCheckpoints:
         checkpoint.load(replay_buffer=rb, restore_rng=False)
         assert len(rb) == 100
         assert torch.isfinite(rb[:100]["next", "observation"]).all()
+
+    def test_nan_in_the_first_batch_is_reported_not_a_storage_error(self, tmp_path):
+        """Nothing is stored yet when the first batch is bad: the run still says what went
+        wrong (not TorchRL's "Cannot save a non-initialized storage"), checkpoints frame 0
+        with an empty buffer, and that checkpoint resumes."""
+        cfg = make_cfg(*TINY, "env.name=NaNInvertedPendulum-v0", "env.kwargs={after:3}")
+        with pytest.raises(NonFiniteEnvOutput, match=r"NaN/inf in .*observation.*frames 0-100"):
+            rave_mujoco.train(make_cfg(*TINY, "env.name=NaNInvertedPendulum-v0",
+                                       "env.kwargs={after:3}", "algorithm=ddpg"), str(tmp_path))  # fmt: skip
+        checkpoint = RunCheckpoint(tmp_path)
+        assert checkpoint.read("counters")["frames"] == 0
+        names = [p.name for p in (tmp_path / "checkpoints").iterdir()]
+        assert names == ["checkpoint-000000000000"]  # no staging left behind
+        rb = make_replay_buffer(cfg, "cpu")
+        checkpoint.load(replay_buffer=rb, restore_rng=False)
+        assert len(rb) == 0
 
     def test_kill_and_resume_continues_exactly(self, tmp_path):
         """Kill a run (SIGKILL) after its first checkpoint, resume it, and check that frames,

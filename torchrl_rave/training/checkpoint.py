@@ -23,11 +23,16 @@ class ReplayBufferAdapter(CheckpointAdapter):
 
     def save(self, component: ReplayBuffer, path: Path, *, args, kwargs) -> None:
         path.mkdir(parents=True, exist_ok=True)
+        if len(component) == 0:  # nothing stored yet (TorchRL cannot dump such a storage)
+            (path / "empty.json").write_text('{"size": 0}\n')
+            return
         component.storage.dumps(path / "storage")
         component.sampler.dumps(path / "sampler")
         component.writer.dumps(path / "writer")
 
     def load(self, component: ReplayBuffer, path: Path, **unused) -> None:
+        if (path / "empty.json").exists():
+            return
         component.storage.loads(path / "storage")
         component.sampler.loads(path / "sampler")
         component.writer.loads(path / "writer")

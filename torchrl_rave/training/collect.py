@@ -7,7 +7,6 @@ import logging
 import signal
 import threading
 from collections.abc import Callable, Iterator
-from pathlib import Path
 
 import torch
 from omegaconf import DictConfig
@@ -179,8 +178,27 @@ class StopRequest:
             signal.signal(sig, handler)
 
 
+def stop_run(collector, save_checkpoint: Callable[[], object]) -> str:
+    """Checkpoints the state so far and shuts the collector down, for a run that must stop;
+    returns what its error message says of the checkpoint: where it is, or, when writing
+    it failed too, why (the run's own error is never hidden behind that failure)."""
+    try:
+        where = f"checkpoint {save_checkpoint()} holds everything up to that frame"
+    except Exception as err:  # noqa: BLE001 (the run's own error must not be lost)
+        where = f"the checkpoint could not be written ({type(err).__name__}: {err})"
+    try:
+        collector.shutdown()
+    except Exception:  # noqa: BLE001 (a dead worker may fail the shutdown too)
+        logging.getLogger(__name__).warning("collector shutdown failed", exc_info=True)
+    return where
+
+
 def guarded_batches(
-    collector, cfg: DictConfig, save_checkpoint: Callable[[], object], frames: Callable[[], int]
+    collector,
+    cfg: DictConfig,
+    save_checkpoint: Callable[[], object],
+    frames: Callable[[], int],
+    run_dir: str,
 ) -> Iterator[TensorDictBase]:
     """The collector's batches. A worker that raises or dies stops the run cleanly: the
     state after the last complete batch is checkpointed (``save_checkpoint()``), the
@@ -195,15 +213,10 @@ def guarded_batches(
         except Exception as err:
             if cfg.collector.backend == "direct":
                 raise
-            where = save_checkpoint()
-            try:
-                collector.shutdown()
-            except Exception:  # noqa: BLE001 (a dead worker may fail the shutdown too)
-                logging.getLogger(__name__).warning("collector shutdown failed", exc_info=True)
+            where = stop_run(collector, save_checkpoint)
             raise CollectorFailure(
                 f"a {cfg.collector.backend} collector worker running {cfg.env.name} failed "
                 f"after frame {frames()}: {type(err).__name__}: {err}. The run stopped; "
-                f"checkpoint {where} holds everything up to that frame: resume with "
-                f"resume={Path(str(where)).parents[1]}"
+                f"{where}: resume with resume={run_dir}"
             ) from err
         yield data
