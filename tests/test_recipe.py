@@ -324,6 +324,20 @@ class TestCheckpoints:
         assert checkpoint.read("world_model")["obs_norm.count"].item() == 300
         assert OmegaConf.create(checkpoint.read("config")).replay_buffer.size == 300
 
+    def test_a_moved_run_directory_resumes_in_its_new_place(self, tmp_path):
+        """The logger's saved directory is the old path: resuming a moved run must write
+        its new metrics where the run is now, and recreate nothing at the old path."""
+        import shutil
+
+        overrides = [*TINY, "algorithm=ddpg", "collector.total_frames=200"]
+        old, new = tmp_path / "old", tmp_path / "new"
+        rave_mujoco.train(make_cfg(*overrides), str(old))
+        shutil.move(old, new)
+        more = [*overrides[:-1], "collector.total_frames=400", f"resume={new}"]
+        rave_mujoco.train(make_cfg(*more), "unused")
+        assert not old.exists()
+        assert [s for s, _ in read_scalar(new, "eval/return", "ddpg")] == [200, 400]
+
     def test_resume_refuses_a_different_algorithm(self, tmp_path):
         overrides = [*TINY, "algorithm=ddpg", "collector.total_frames=200"]
         rave_mujoco.train(make_cfg(*overrides), str(tmp_path))
