@@ -201,3 +201,48 @@ def test_any_batch_shape_equals_the_flattened_batch(shape, fast_calls, estimator
     for key in ("loss_value", "loss_actor"):
         torch.testing.assert_close(outs[1][key], outs[0][key])
     torch.testing.assert_close(outs[1]["pred_value"].reshape(4, 12), outs[0]["pred_value"])
+
+
+def _without_action(td):
+    return td.exclude("action")
+
+
+def _float64(td):
+    return td.to(torch.float64)
+
+
+def _empty(td):
+    return td[:0]
+
+
+def _wide_observation(td):
+    td = td.clone()
+    width = td["observation"].shape[-1] + 1
+    td["observation"] = torch.randn(*td.batch_size, width)
+    td["next", "observation"] = torch.randn(*td.batch_size, width)
+    return td
+
+
+@pytest.mark.parametrize(
+    "estimator, damage, message",
+    [
+        ("td0", _without_action, "no entry 'action'"),
+        ("rave", _without_action, "no entry 'action'"),
+        ("td0", _float64, "entry 'observation' is torch.float64 but the model's parameters"),
+        ("rave", _float64, "entry 'observation' is torch.float64 but the model's parameters"),
+        ("td0", _empty, "EnsembleDDPGLoss got an empty batch"),
+        ("rave", _empty, "EnsembleDDPGLoss got an empty batch"),
+        # the estimator knows the width; its check runs before any network sees the batch
+        ("rave", _wide_observation, "entry 'observation' has shape \\(6, 4\\), expected last"),
+    ],
+)
+@pytest.mark.parametrize("method", ["forward", "loss_value", "loss_actor"])
+def test_bad_batches_are_named_before_any_network_runs(estimator, damage, message, method):
+    """Issue 15, defect 10: these failed with NoneType, matmul dtype or shape errors, a
+    max() over nothing, or (the actor loss of an empty batch) NaN."""
+    loss = make_loss(3, estimator=estimator)
+    if method == "loss_actor" and damage is _without_action:
+        pytest.skip("the actor loss reads no action")
+    bad = damage(batch(B=6))
+    with pytest.raises(ValueError, match=message):
+        getattr(loss, method)(bad)

@@ -395,3 +395,40 @@ class TestLearnsLinearGaussianSystem:
 
         small, large = spread(40), spread(4000)
         assert large < 0.5 * small, (small, large)
+
+
+class TestBadInput:
+    """Issue 15, defect 10: bad batches are refused by name, not deep inside torch."""
+
+    def setup_method(self):
+        from test_value_expansion import batch, world_model
+
+        self.model = world_model(3)
+        self.data = batch(B=6)
+        self.model.update_normalizers_from(self.data)
+        self.loss = WorldModelEnsembleLoss(self.model)
+
+    def test_missing_action(self):
+        with pytest.raises(ValueError, match="no entry 'action'"):
+            self.loss(self.data.exclude("action"))
+
+    def test_float64_in_the_loss_and_the_normalisers_alike(self):
+        # the loss failed in baddbmm, the normalisers took float64 silently
+        wrong = self.data.to(torch.float64)
+        with pytest.raises(ValueError, match="'observation' is torch.float64 but the model"):
+            self.loss(wrong)
+        before = self.model.obs_norm.count.clone()
+        with pytest.raises(ValueError, match="'observation' is torch.float64 but the model"):
+            self.model.update_normalizers_from(wrong)
+        assert torch.equal(self.model.obs_norm.count, before)  # nothing merged
+
+    def test_empty_batch(self):
+        # failed inside random_ when drawing the bootstrap indices
+        with pytest.raises(ValueError, match="WorldModelEnsembleLoss got an empty batch"):
+            self.loss(self.data[:0])
+
+    def test_a_double_model_takes_double_input(self):
+        model = self.model.to(torch.float64)
+        out = WorldModelEnsembleLoss(model)(self.data.to(torch.float64))
+        assert out["loss_transition"].dtype == torch.float64
+        assert torch.isfinite(out["loss_transition"])

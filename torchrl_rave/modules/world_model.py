@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Sequence
 from typing import Literal
 
@@ -12,6 +13,7 @@ from tensordict.nn.probabilistic import interaction_type
 from tensordict.utils import NestedKey
 from torch import nn
 
+from torchrl_rave._checks import first_param_dtype, get_checked
 from torchrl_rave.modules.ensemble import EnsembleMLP, GaussianEnsembleMLP
 from torchrl_rave.modules.normalizer import RunningNormalizer
 
@@ -406,13 +408,21 @@ class WorldModelEnsemble(TensorDictModuleBase):
         tensordict: TensorDictBase,
         reward_key: NestedKey = ("next", "reward"),
     ) -> None:
-        """Same as :meth:`update_normalizers`, reading a TorchRL transition batch."""
+        """Same as :meth:`update_normalizers`, reading a TorchRL transition batch; a
+        missing entry, a wrong width or another dtype than the model's is refused by name."""
+        S, A = self.observation_dim, self.action_dim
+        read = functools.partial(get_checked, tensordict, check_finite=False, dtype=self.dtype)
         self.update_normalizers(
-            tensordict.get(self.observation_key),
-            tensordict.get(self.action_key),
-            tensordict.get(("next", self.observation_key)),
-            tensordict.get(reward_key),
+            read(self.observation_key, S),
+            read(self.action_key, A),
+            read(("next", self.observation_key), S),
+            read(reward_key),
         )
+
+    @property
+    def dtype(self) -> torch.dtype:
+        """The dtype of the ensemble's parameters (inputs must match it)."""
+        return first_param_dtype(self)
 
     # ------------------------------------------------------------- tensordict
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:

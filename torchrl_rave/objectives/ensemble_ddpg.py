@@ -11,7 +11,7 @@ from tensordict.utils import NestedKey
 from torchrl.objectives import LossModule, ValueEstimators
 from torchrl.objectives.utils import _cache_values, _vmap_func, distance_loss
 
-from torchrl_rave._checks import check_positive_int
+from torchrl_rave._checks import check_not_empty, check_positive_int, get_checked
 from torchrl_rave.modules.tensor_call import PlannedCalls
 from torchrl_rave.objectives.value_expansion import ValueExpansionEstimator
 
@@ -222,9 +222,20 @@ class EnsembleDDPGLoss(LossModule):
         td = td.expand(self.num_value_nets, *td.batch_size)
         return self._vmap_value_network(td, params).get(keys.state_action_value).squeeze(-1)
 
+    def _check_batch(self, tensordict: TensorDictBase, keys) -> None:
+        """Names an empty batch, or a missing entry or wrong dtype among ``keys``, before
+        any network runs; a value-expansion estimator also checks the widths."""
+        check_not_empty(tensordict, type(self).__name__)
+        dtype = next(iter(self.actor_network_params.values(True, True))).dtype
+        for key in keys:
+            get_checked(tensordict, key, check_finite=False, dtype=dtype)
+        if isinstance(self.value_estimator, ValueExpansionEstimator):
+            self.value_estimator.check_batch(tensordict)
+
     # ------------------------------------------------------------------ losses
     def loss_actor(self, tensordict: TensorDictBase) -> tuple[torch.Tensor, dict]:
         """``-mean_k Q_k(s, pi(s))``; the critics' weights are detached, so only the actor moves."""
+        self._check_batch(tensordict, self.actor_network.in_keys)
         weights = self._maybe_get_priority_weight(tensordict)
         action = self._actions(tensordict.get, self.actor_network_params)
         q = self._values(tensordict.get, action, self._cached_detach_value_network_params)
@@ -233,6 +244,12 @@ class EnsembleDDPGLoss(LossModule):
 
     def loss_value(self, tensordict: TensorDictBase) -> tuple[torch.Tensor, dict]:
         """Every critic regresses onto the estimator's target; the sum over critics is reduced."""
+        keys = self.tensor_keys
+        self._check_batch(
+            tensordict,
+            [*self.value_network.in_keys, ("next", keys.reward), ("next", keys.done)]
+            + [("next", k) for k in self.actor_network.in_keys],
+        )
         weights = self._maybe_get_priority_weight(tensordict)
         tensordict = tensordict.clone(False)
         keys = self.tensor_keys

@@ -11,7 +11,13 @@ from tensordict.nn import TensorDictModuleBase
 from tensordict.utils import NestedKey
 from torchrl.objectives.value import ValueEstimatorBase
 
-from torchrl_rave._checks import check_non_negative, check_positive_int, get_checked
+from torchrl_rave._checks import (
+    check_non_negative,
+    check_not_empty,
+    check_positive_int,
+    first_param_dtype,
+    get_checked,
+)
 from torchrl_rave.modules.world_model import WorldModelEnsemble
 from torchrl_rave.objectives import functional as VF
 from torchrl_rave.objectives.target_networks import TargetNetworks
@@ -310,16 +316,28 @@ class ValueExpansionEstimator(ValueEstimatorBase):
         return VF.adaptive_alpha(err, self.alpha, self.alpha_error_scale)
 
     # ------------------------------------------------------------------ target
-    def _read_batch(self, tensordict: TensorDictBase):
+    def check_batch(self, tensordict: TensorDictBase) -> None:
+        """Names a missing entry, a wrong width or dtype, or an empty batch before any
+        network sees the batch (a loss calls it first); NaN is checked by the target."""
+        if self.check_inputs:
+            self._read_batch(tensordict, check_finite=False)
+
+    def _read_batch(self, tensordict: TensorDictBase, check_finite: bool | None = None):
         k = self.tensor_keys
         wm = self.world_model
         check = self.check_inputs
+        finite = check if check_finite is None else check_finite
         S = getattr(wm, "observation_dim", None) if check else None
         A = getattr(wm, "action_dim", None) if check else None
-        obs = get_checked(tensordict, k.observation, S, check_finite=check)
-        action = get_checked(tensordict, k.action, A, check_finite=check)
-        next_obs = get_checked(tensordict, ("next", k.observation), S, check_finite=check)
-        reward = get_checked(tensordict, ("next", k.reward), check_finite=check)
+        dtype = first_param_dtype(wm) if check else None
+        if check:
+            check_not_empty(tensordict, type(self).__name__)
+        obs = get_checked(tensordict, k.observation, S, check_finite=finite, dtype=dtype)
+        action = get_checked(tensordict, k.action, A, check_finite=finite, dtype=dtype)
+        next_obs = get_checked(
+            tensordict, ("next", k.observation), S, check_finite=finite, dtype=dtype
+        )
+        reward = get_checked(tensordict, ("next", k.reward), check_finite=finite, dtype=dtype)
         terminated = tensordict.get(("next", k.terminated), None)
         if terminated is None:
             terminated = get_checked(tensordict, ("next", k.done), check_finite=False)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass
 
@@ -11,7 +12,7 @@ from tensordict.utils import NestedKey
 from torch.nn import functional as F
 from torchrl.objectives import LossModule
 
-from torchrl_rave._checks import get_checked
+from torchrl_rave._checks import check_not_empty, get_checked
 from torchrl_rave.modules.world_model import WorldModelEnsemble
 
 __all__ = ["WorldModelEnsembleLoss", "gaussian_nll"]
@@ -139,12 +140,12 @@ class WorldModelEnsembleLoss(LossModule):
         keys = self.tensor_keys
         S, A = wm.observation_dim, wm.action_dim
         check = self.check_finite
-        obs = get_checked(tensordict, keys.observation, S, check_finite=check).reshape(-1, S)
-        action = get_checked(tensordict, keys.action, A, check_finite=check).reshape(-1, A)
-        next_obs = get_checked(tensordict, keys.next_observation, S, check_finite=check).reshape(
-            -1, S
-        )
-        reward = get_checked(tensordict, keys.reward, check_finite=check).reshape(-1, 1)
+        check_not_empty(tensordict, type(self).__name__)
+        read = functools.partial(get_checked, tensordict, check_finite=check, dtype=wm.dtype)
+        obs = read(keys.observation, S).reshape(-1, S)
+        action = read(keys.action, A).reshape(-1, A)
+        next_obs = read(keys.next_observation, S).reshape(-1, S)
+        reward = read(keys.reward).reshape(-1, 1)
         terminated = (
             get_checked(tensordict, keys.terminated, check_finite=check)
             .reshape(-1, 1)
