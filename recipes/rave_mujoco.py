@@ -40,6 +40,7 @@ from torchrl_rave.training.collect import (
     guarded_batches,
     make_collector,
     push_policy_weights,
+    shutdown_on_error,
     stop_run,
 )
 from torchrl_rave.training.config import check_config, check_resumable, replay_buffer_size
@@ -79,8 +80,10 @@ def train(cfg: DictConfig, run_dir: str) -> dict[str, float]:
     rb = make_replay_buffer(cfg, device)
     update_agent = make_agent_step(cfg, agent.loss, agent.optimizers, agent.target_updater)
 
-    # Counters and checkpoints; a resumed run restores everything it saved
+    # Counters and checkpoints; a resumed run restores everything it saved. Before any
+    # work: the checkpoints can be written, and the disk has room for one.
     checkpoint = RunCheckpoint(run_dir)
+    checkpoint.preflight(agent.checkpoint_bytes(cfg.replay_buffer.size, env.fake_tensordict()))
     counters = {"frames": 0, "updates": 0, "update_budget": 0.0}
     counters.update(next_eval=cfg.eval.interval, next_checkpoint=cfg.checkpoint.interval)
     logger_state: dict = {}
@@ -109,7 +112,7 @@ def train(cfg: DictConfig, run_dir: str) -> dict[str, float]:
     )
     start, frames_at_start = time.perf_counter(), counters["frames"]
     collector = None
-    with StopRequest() as stop:
+    with StopRequest() as stop, shutdown_on_error(lambda: collector):
         if counters["frames"] < total:
             collector = make_collector(cfg, env, agent.policy, device, counters["frames"])
             synced_at = counters["updates"]  # the workers start with the current weights
@@ -158,7 +161,14 @@ def train(cfg: DictConfig, run_dir: str) -> dict[str, float]:
                 if frames_now >= counters["next_eval"] or frames_now >= total:
                     t_eval = time.perf_counter()
                     eval_env.set_seed(cfg.env.seed + 1_000_003 + frames_now)
-                    last_eval = evaluate(eval_env, agent.actor, cfg.eval.episodes)
+                    try:
+                        last_eval = evaluate(eval_env, agent.actor, cfg.eval.episodes)
+                    except NonFiniteEnvOutput as err:
+                        where = stop_run(collector, save_checkpoint)
+                        raise NonFiniteEnvOutput(
+                            f"{cfg.env.name}: {err} at frame {frames_now}; {where}: fix the "
+                            f"env and rerun with resume={run_dir}"
+                        ) from None
                     metrics.update(last_eval)
                     metrics["time/eval_s"] = time.perf_counter() - t_eval
                     while counters["next_eval"] <= frames_now:

@@ -615,3 +615,20 @@ class TestBadInput:
         est = self.est(alpha_mode="tensordict")
         with pytest.raises(ValueError, match="rave_alpha"):
             est.value_estimate(batch())
+
+
+@pytest.mark.parametrize("shape", [(3, 4), (4, 3)])
+def test_estimator_on_td3_loss_takes_any_batch_shape(shape):
+    """Issue 15, deliverable 3: RAVE in a stock TD3Loss (K = 4) gives the flattened
+    batch's losses for [B1, B2] batches, including a leading dimension equal to K."""
+    flat = batch(B=12, terminal=(2, 7))
+    outs = []
+    for data in (flat.clone(), flat.clone().reshape(shape)):
+        loss = td3_loss()
+        loss.make_value_estimator(
+            RAVEValueEstimator.for_loss(loss, world_model=world_model(3), gamma=0.9, horizon=2)
+        )
+        torch.manual_seed(9)  # the same rollouts and target smoothing noise
+        outs.append(loss(data))
+    for key in ("loss_actor", "loss_qvalue"):
+        torch.testing.assert_close(outs[1][key], outs[0][key])

@@ -432,3 +432,20 @@ class TestBadInput:
         out = WorldModelEnsembleLoss(model)(self.data.to(torch.float64))
         assert out["loss_transition"].dtype == torch.float64
         assert torch.isfinite(out["loss_transition"])
+
+
+@pytest.mark.parametrize("shape", [(3, 4), (4, 3)])
+def test_world_model_loss_takes_any_batch_shape(shape):
+    """Issue 15, deliverable 3: [B1, B2] batches give the flattened batch's losses (the
+    bootstrap draws from the flattened rows)."""
+    from test_value_expansion import batch, world_model
+
+    model = world_model(3)
+    flat = batch(B=12)
+    model.update_normalizers_from(flat)
+    outs = []
+    for data in (flat, flat.reshape(shape)):
+        torch.manual_seed(5)
+        outs.append(WorldModelEnsembleLoss(model)(data))
+    for key in ("loss_transition", "loss_reward", "loss_termination"):
+        torch.testing.assert_close(outs[1][key], outs[0][key])

@@ -70,6 +70,26 @@ class Agent:
         parts.update({f"optim_{name}": opt for name, opt in self.optimizers.items()})
         return {name: part for name, part in parts.items() if part is not None}
 
+    def checkpoint_bytes(self, replay_capacity: int, transition: TensorDictBase) -> int:
+        """About the size of one checkpoint: a replay buffer of ``replay_capacity`` frames
+        like ``transition`` (TorchRL allocates the whole buffer at the first extend; a
+        quarter is added for the collector's own entries) plus the agent's state, with
+        Adam's two moments for every optimised parameter."""
+        state = 0
+        for part in self.state_components().values():
+            state += sum(
+                t.numel() * t.element_size()
+                for t in part.state_dict().values()
+                if isinstance(t, torch.Tensor)
+            )
+        moments = sum(
+            2 * p.numel() * p.element_size()
+            for opt in self.optimizers.values()
+            for group in opt.param_groups
+            for p in group["params"]
+        )
+        return int(1.25 * replay_capacity * transition.bytes()) + state + moments
+
 
 def make_agent(cfg: DictConfig, env, device: torch.device | str = "cpu") -> Agent:
     """The agent of ``cfg.algorithm`` for ``env``'s specs, on ``device``; the one builder
@@ -98,7 +118,10 @@ def load_agent(run_dir: str | Path, device: torch.device | str = "cpu") -> tuple
     from torchrl_rave.training.checkpoint import RunCheckpoint
 
     checkpoint = RunCheckpoint(run_dir)
-    cfg = OmegaConf.create(checkpoint.config())
+    path = checkpoint.latest()  # the newest undamaged one
+    if path is None:
+        raise FileNotFoundError(f"no checkpoint under {checkpoint.root}")
+    cfg = OmegaConf.create(checkpoint.read("config", path))
     env = make_env(cfg, torch.device(device))
     try:
         agent = make_agent(cfg, env, device)
@@ -107,9 +130,7 @@ def load_agent(run_dir: str | Path, device: torch.device | str = "cpu") -> tuple
     parts = {k: v for k, v in agent.state_components().items() if not k.startswith("optim")}
     if agent.world_model_trainer is not None:
         del parts["world_model_trainer"]
-    from torchrl.checkpoint import Checkpoint
-
-    Checkpoint(**parts).load(checkpoint.latest(), components=list(parts))
+    checkpoint.load(path=path, restore_rng=False, **parts)
     return cfg, agent
 
 

@@ -1,17 +1,49 @@
-"""Run checkpoints through ``torchrl.checkpoint``: no pickle on load, the last two kept."""
+"""Run checkpoints through ``torchrl.checkpoint``: no pickle on load, checksummed, the
+last two kept, the older one used when the newest is damaged."""
 
 from __future__ import annotations
 
+import contextlib
+import errno
+import hashlib
+import json
+import os
+import shutil
+import uuid
+import warnings
 from pathlib import Path
 
 from omegaconf import DictConfig, OmegaConf
-from torchrl.checkpoint import Checkpoint, CheckpointAdapter, CheckpointRotation, GlobalRNGState
+from torchrl.checkpoint import Checkpoint, CheckpointAdapter, GlobalRNGState
 from torchrl.data import ReplayBuffer
 
-__all__ = ["FORMAT_VERSION", "RunCheckpoint", "config_for_resume", "saved_config"]
+__all__ = [
+    "CheckpointWriteError",
+    "DamagedCheckpoint",
+    "DamagedCheckpointWarning",
+    "FORMAT_VERSION",
+    "RunCheckpoint",
+    "config_for_resume",
+    "saved_config",
+]
 
-# written into every manifest's metadata; a run directory without it predates this format
-FORMAT_VERSION = 2
+# written into every manifest's metadata; 3 added checksums.json
+FORMAT_VERSION = 3
+CHECKSUMS = "checksums.json"
+PREFIX = "checkpoint-"
+KEEP_LAST = 2
+
+
+class CheckpointWriteError(RuntimeError):
+    """A checkpoint could not be written (unwritable directory, full disk, ...)."""
+
+
+class DamagedCheckpoint(RuntimeError):
+    """A checkpoint's files do not match the sizes and checksums it was written with."""
+
+
+class DamagedCheckpointWarning(UserWarning):
+    """The newest checkpoint was damaged and an older one was used instead."""
 
 
 class ReplayBufferAdapter(CheckpointAdapter):
@@ -42,13 +74,36 @@ def _checkpoint(**components) -> Checkpoint:
     return Checkpoint(**components).register_adapter(ReplayBuffer, ReplayBufferAdapter())
 
 
+def _sha256(path: Path) -> str:
+    digest = hashlib.sha256()
+    with path.open("rb") as file:
+        while chunk := file.read(1 << 20):
+            digest.update(chunk)
+    return digest.hexdigest()
+
+
+def _fsync(path: Path) -> None:
+    fd = os.open(path, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
+def _size(path: Path) -> int:
+    return sum(f.stat().st_size for f in path.rglob("*") if f.is_file())
+
+
 class RunCheckpoint:
     """The checkpoints of one run: ``<run_dir>/checkpoints/checkpoint-<frames>/``.
 
-    Each is a ``torchrl.checkpoint.Checkpoint`` directory, written in a staging directory
-    and published atomically, so a kill at any moment leaves the previous one whole. The
-    two newest are kept. Tensors are stored as TensorDict memory maps and everything else
-    as JSON: loading one runs no code from it (no pickle).
+    Each is a ``torchrl.checkpoint.Checkpoint`` directory plus ``checksums.json`` (the size
+    and SHA-256 of every file). It is written under a hidden name, flushed to disk and
+    renamed into place, so a kill at any moment leaves the previous one whole; the two
+    newest are kept. Loading checks the checksums first: a damaged newest checkpoint is
+    moved to ``checkpoints/damaged/`` and the older one is used, with a
+    :class:`DamagedCheckpointWarning`. Tensors are stored as TensorDict memory maps and
+    everything else as JSON: loading one runs no code from it (no pickle).
 
     The components are the ones passed to :meth:`save` / :meth:`load`: live objects with
     ``state_dict``/``load_state_dict`` (modules, optimisers, the world-model trainer),
@@ -58,38 +113,224 @@ class RunCheckpoint:
 
     def __init__(self, run_dir: str | Path) -> None:
         self.root = Path(run_dir) / "checkpoints"
-        self.rotation = CheckpointRotation(self.root, keep_last=2)
+
+    # ----------------------------------------------------------------------- listing
+    def checkpoints(self) -> list[Path]:
+        """Every published checkpoint, oldest first (damaged or not)."""
+        self._refuse_old_format()
+        if not self.root.is_dir():
+            return []
+        found = [
+            p
+            for p in self.root.iterdir()
+            if p.name.startswith(PREFIX) and p.name[len(PREFIX) :].isdigit() and p.is_dir()
+        ]
+        return sorted(found, key=lambda p: int(p.name[len(PREFIX) :]))
 
     def latest(self) -> Path | None:
-        self._refuse_old_format()
-        return self.rotation.latest()
+        """The newest checkpoint that passes :meth:`verify`, or ``None`` when there is none."""
+        return self._newest_valid(None, set_aside=False)
+
+    def verify(self, path: Path, components: list[str] | None = None) -> None:
+        """Raises :class:`DamagedCheckpoint` naming the first file of ``path`` (of the
+        given components' files, and the manifest) that is missing, has the wrong size
+        or the wrong checksum."""
+        path = Path(path)
+        try:
+            listed = json.loads((path / CHECKSUMS).read_text())["files"]
+        except FileNotFoundError:
+            raise DamagedCheckpoint(
+                f"{path} has no {CHECKSUMS} (written by an interrupted or older torchrl-rave "
+                "that kept no checksums)"
+            ) from None
+        except (ValueError, KeyError, TypeError) as err:
+            raise DamagedCheckpoint(f"{path / CHECKSUMS} is unreadable ({err})") from None
+        if components is not None:
+            try:
+                manifest = Checkpoint.manifest(path)
+                prefixes = tuple(
+                    manifest["components"][name]["path"] + "/"
+                    for name in components
+                    if name in manifest["components"]
+                )
+            except Exception as err:  # noqa: BLE001 (any manifest damage is reported)
+                raise DamagedCheckpoint(f"{path}/manifest.json is unreadable ({err})") from None
+            listed = {
+                name: entry
+                for name, entry in listed.items()
+                if name == "manifest.json" or name.startswith(prefixes)
+            }
+        for name, (size, sha256) in sorted(listed.items()):
+            file = path / name
+            if not file.is_file():
+                raise DamagedCheckpoint(f"{file} is missing")
+            actual = file.stat().st_size
+            if actual != size:
+                raise DamagedCheckpoint(f"{file} has {actual} bytes, {size} were written")
+            if _sha256(file) != sha256:
+                raise DamagedCheckpoint(f"{file} does not match its checksum (corrupted)")
+
+    # ------------------------------------------------------------------------ saving
+    def preflight(self, expected_bytes: int = 0) -> None:
+        """Before any training: the checkpoint directory can be created and written to and
+        its filesystem has ``expected_bytes`` free; :class:`CheckpointWriteError` otherwise."""
+        probe = self.root / f".write-test-{uuid.uuid4().hex}"
+        try:
+            self.root.mkdir(parents=True, exist_ok=True)
+            with probe.open("wb") as file:
+                file.write(b"\0" * 4096)
+                file.flush()
+                os.fsync(file.fileno())
+            probe.unlink()
+        except OSError as err:
+            with contextlib.suppress(OSError):
+                probe.unlink()
+            raise CheckpointWriteError(
+                f"cannot write checkpoints to {self.root} ({err.strerror or err}); "
+                "nothing was trained: make it writable or pick another run directory"
+            ) from err
+        self._check_space(int(expected_bytes), "a checkpoint of this run")
 
     def save(self, frames: int, **components) -> Path:
-        checkpoint = _checkpoint(rng=GlobalRNGState(), **components)
-        return self.rotation.save(
-            checkpoint, step=int(frames), metadata={"torchrl_rave_format": FORMAT_VERSION}
-        )
+        """Writes checkpoint ``frames``; raises :class:`CheckpointWriteError` (naming the
+        directory and the cause) when it cannot, leaving the previous checkpoints intact."""
+        destination = self.root / f"{PREFIX}{int(frames):012d}"
+        stage = self.root / f".{destination.name}.writing-{uuid.uuid4().hex}"
+        try:
+            self.root.mkdir(parents=True, exist_ok=True)
+            self._remove_leftovers()
+            previous = self.checkpoints()
+            if previous:  # same config, same sizes: the newest one says what this one needs
+                self._check_space(_size(previous[-1]), f"checkpoint {destination.name}")
+            checkpoint = _checkpoint(rng=GlobalRNGState(), **components)
+            checkpoint.save(stage, metadata={"torchrl_rave_format": FORMAT_VERSION})
+            self._write_checksums(stage)
+            self._publish(stage, destination)
+        except OSError as err:
+            shutil.rmtree(stage, ignore_errors=True)
+            raise self._write_error(destination, err) from err
+        except BaseException:
+            shutil.rmtree(stage, ignore_errors=True)
+            raise
+        self._prune()
+        return destination
 
+    def _write_checksums(self, stage: Path) -> None:
+        files = {}
+        for file in sorted(p for p in stage.rglob("*") if p.is_file()):
+            _fsync(file)  # on disk before the name says it is there
+            files[file.relative_to(stage).as_posix()] = [file.stat().st_size, _sha256(file)]
+        with (stage / CHECKSUMS).open("w") as out:
+            json.dump({"algorithm": "sha256", "files": files}, out, indent=1, sort_keys=True)
+            out.flush()
+            os.fsync(out.fileno())
+        for directory in [stage, *(p for p in stage.rglob("*") if p.is_dir())]:
+            _fsync(directory)
+
+    def _publish(self, stage: Path, destination: Path) -> None:
+        old = None
+        if destination.exists():  # the same frame written again (a resumed run)
+            old = self.root / f".{destination.name}.replaced-{uuid.uuid4().hex}"
+            os.replace(destination, old)
+        os.replace(stage, destination)
+        _fsync(self.root)
+        if old is not None:
+            shutil.rmtree(old, ignore_errors=True)
+
+    def _prune(self) -> None:
+        for path in self.checkpoints()[:-KEEP_LAST]:
+            doomed = self.root / f".{path.name}.delete-{uuid.uuid4().hex}"
+            os.replace(path, doomed)
+            shutil.rmtree(doomed, ignore_errors=True)
+
+    def _remove_leftovers(self) -> None:
+        """Half-written checkpoints of a killed process (hidden names) are deleted."""
+        for path in self.root.iterdir():
+            if path.name.startswith(".") and any(
+                tag in path.name for tag in (".writing-", ".stage-", ".delete-", ".replaced-")
+            ):
+                shutil.rmtree(path, ignore_errors=True)
+
+    def _check_space(self, needed: int, what: str) -> None:
+        free = shutil.disk_usage(self.root).free
+        needed = int(needed * 1.1) + (1 << 20)
+        if free < needed:
+            raise CheckpointWriteError(
+                f"not enough disk space for {what} in {self.root}: about {needed / 1e6:.1f} "
+                f"MB needed, {free / 1e6:.1f} MB free; free some space (the checkpoints "
+                "already there are intact)"
+            )
+
+    def _write_error(self, destination: Path, err: OSError) -> CheckpointWriteError:
+        if err.errno in (errno.ENOSPC, errno.EDQUOT):
+            cause = "the disk is full"
+        else:
+            cause = err.strerror or str(err)
+        previous = [p for p in self.checkpoints() if p != destination]
+        kept = (
+            f"the previous checkpoint {previous[-1]} is intact"
+            if previous
+            else ("there is no earlier checkpoint")
+        )
+        return CheckpointWriteError(f"could not write {destination}: {cause}; {kept}")
+
+    # ----------------------------------------------------------------------- loading
     def load(self, *, path: Path | None = None, restore_rng: bool = True, **components) -> Path:
-        """Restores ``components`` (and the RNG state) from the latest checkpoint, or ``path``."""
-        path = path or self.latest()
-        if path is None:
-            raise FileNotFoundError(f"no checkpoint under {self.root} (resume needs one)")
+        """Restores ``components`` (and the RNG state) from the newest undamaged checkpoint,
+        or ``path``, after checking their files against the checksums. Damaged newer
+        checkpoints are moved to ``checkpoints/damaged/``, with a warning that says so."""
         if restore_rng:
             components["rng"] = GlobalRNGState()
+        if path is None:
+            path = self._newest_valid(list(components), set_aside=True)
+            if path is None:
+                raise FileNotFoundError(f"no checkpoint under {self.root} (resume needs one)")
+        else:
+            self.verify(path, list(components))
         _checkpoint(**components).load(path, components=list(components))
-        return path
+        return Path(path)
+
+    def _newest_valid(self, components: list[str] | None, *, set_aside: bool) -> Path | None:
+        damaged: list[tuple[Path, str]] = []
+        for path in reversed(self.checkpoints()):
+            try:
+                self.verify(path, components)
+            except DamagedCheckpoint as err:
+                damaged.append((path, str(err)))
+                continue
+            if damaged:
+                if set_aside:  # so that neither a later load nor the pruning meets them
+                    (self.root / "damaged").mkdir(exist_ok=True)
+                    for bad, _ in damaged:
+                        os.replace(bad, self.root / "damaged" / bad.name)
+                moved = " (moved to checkpoints/damaged/)" if set_aside else ""
+                warnings.warn(
+                    f"skipped damaged checkpoint(s){moved}: "
+                    f"{'; '.join(why for _, why in damaged)}; using the older {path}",
+                    DamagedCheckpointWarning,
+                    stacklevel=3,
+                )
+            return path
+        if damaged:  # nothing to fall back to: everything stays where it is
+            raise DamagedCheckpoint(
+                f"every checkpoint under {self.root} is damaged: "
+                f"{'; '.join(why for _, why in damaged)}"
+            )
+        return None
 
     def config(self) -> dict:
         """The config stored in the latest checkpoint, read without loading anything else."""
         return self.read("config")
 
     def read(self, name: str, path: Path | None = None):
-        """One component of the latest (or the given) checkpoint as plain data: a state
-        dict of tensors and Python values, or the JSON value."""
-        path = path or self.latest()
+        """One component of the newest undamaged (or the given) checkpoint as plain data:
+        a state dict of tensors and Python values, or the JSON value."""
         if path is None:
-            raise FileNotFoundError(f"no checkpoint found under {self.root}")
+            path = self._newest_valid([name], set_aside=False)
+            if path is None:
+                raise FileNotFoundError(f"no checkpoint found under {self.root}")
+        else:
+            self.verify(path, [name])
         record = Checkpoint.manifest(path)["components"].get(name)
         if record is None:
             raise KeyError(f"checkpoint {path} has no component {name!r}")

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import logging
 import signal
@@ -143,6 +144,10 @@ class CollectorFailure(RuntimeError):
     """A collector worker raised or died; the run stopped with a checkpoint."""
 
 
+class CollectorTimeout(CollectorFailure):
+    """No batch came from the collector within ``collector.timeout_s`` (a hung worker)."""
+
+
 class NonFiniteEnvOutput(RuntimeError):
     """The environment produced NaN or infinite observations or rewards."""
 
@@ -186,11 +191,52 @@ def stop_run(collector, save_checkpoint: Callable[[], object]) -> str:
         where = f"checkpoint {save_checkpoint()} holds everything up to that frame"
     except Exception as err:  # noqa: BLE001 (the run's own error must not be lost)
         where = f"the checkpoint could not be written ({type(err).__name__}: {err})"
+    shutdown_quietly(collector)
+    return where
+
+
+def shutdown_quietly(collector) -> None:
+    """Shuts ``collector`` down (again: TorchRL's shutdowns are idempotent); a failure,
+    e.g. of a dead worker, is logged rather than raised over the run's own error."""
     try:
         collector.shutdown()
     except Exception:  # noqa: BLE001 (a dead worker may fail the shutdown too)
         logging.getLogger(__name__).warning("collector shutdown failed", exc_info=True)
-    return where
+
+
+@contextlib.contextmanager
+def shutdown_on_error(get_collector: Callable[[], object]) -> Iterator[None]:
+    """Shuts the collector (``get_collector()``, possibly ``None``) down when the block
+    raises, e.g. because a checkpoint could not be written, so that no worker outlives it."""
+    try:
+        yield
+    except BaseException:
+        collector = get_collector()
+        if collector is not None:
+            shutdown_quietly(collector)
+        raise
+
+
+@contextlib.contextmanager
+def deadline(seconds: float | None, message: str) -> Iterator[None]:
+    """Raises :class:`CollectorTimeout` (``message``) in the block if it runs longer than
+    ``seconds`` (``None``: no limit). It uses ``SIGALRM``, so it only works in the main
+    thread on POSIX; elsewhere the block runs without a limit."""
+    usable = hasattr(signal, "setitimer") and threading.current_thread() is threading.main_thread()
+    if not seconds or not usable:
+        yield
+        return
+
+    def expire(signum, frame):
+        raise CollectorTimeout(message)
+
+    previous = signal.signal(signal.SIGALRM, expire)
+    signal.setitimer(signal.ITIMER_REAL, float(seconds))
+    try:
+        yield
+    finally:
+        signal.setitimer(signal.ITIMER_REAL, 0)
+        signal.signal(signal.SIGALRM, previous)
 
 
 def guarded_batches(
@@ -203,13 +249,27 @@ def guarded_batches(
     """The collector's batches. A worker that raises or dies stops the run cleanly: the
     state after the last complete batch is checkpointed (``save_checkpoint()``), the
     collector is shut down and :class:`CollectorFailure` names the env, the frame and the
-    cause. (With the direct backend the env's own error propagates.)"""
+    cause. (With the direct backend the env's own error propagates.) A batch that takes
+    longer than ``collector.timeout_s`` seconds (a worker hung rather than crashed) stops
+    the run the same way with :class:`CollectorTimeout`, whatever the backend."""
     iterator = iter(collector)
+    timeout = cfg.collector.get("timeout_s")
     while True:
         try:
-            data = next(iterator)
+            hung = (
+                f"no batch came from the {cfg.collector.backend} collector running "
+                f"{cfg.env.name} within collector.timeout_s={timeout} s after frame "
+                f"{frames()}: a worker hung"
+            )
+            with deadline(timeout, hung):
+                data = next(iterator)
         except StopIteration:
             return
+        except CollectorTimeout as err:
+            where = stop_run(collector, save_checkpoint)
+            raise CollectorTimeout(
+                f"{err}. The run stopped; {where}: resume with resume={run_dir}"
+            ) from None
         except Exception as err:
             if cfg.collector.backend == "direct":
                 raise

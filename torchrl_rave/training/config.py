@@ -167,6 +167,14 @@ def check_config(cfg: DictConfig) -> Algorithm:
         cfg.collector.weight_sync_every,
         "an integer >= 1 (updates between two weight pushes)",
     )
+    timeout = cfg.collector.get("timeout_s")
+    _require(
+        timeout is None
+        or (isinstance(timeout, (int, float)) and not isinstance(timeout, bool) and timeout > 0),
+        "collector.timeout_s",
+        timeout,
+        "a number of seconds > 0, or null (wait for a batch forever)",
+    )
     if cfg.collector.backend == "direct":
         _require(workers == 1, "collector.num_workers", workers,
                  "1 with collector.backend=direct (use collector.backend=process or ray for more)")  # fmt: skip

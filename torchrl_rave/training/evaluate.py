@@ -8,6 +8,8 @@ from omegaconf import DictConfig, OmegaConf
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 from torchrl.record.loggers import Logger, get_logger
 
+from torchrl_rave.training.collect import NonFiniteEnvOutput
+
 
 def make_logger(cfg: DictConfig, run_dir: str, state: dict | None = None) -> Logger | None:
     """The run's logger (``logger.backend``) writing under ``run_dir``; ``state`` is a
@@ -28,11 +30,18 @@ def make_logger(cfg: DictConfig, run_dir: str, state: dict | None = None) -> Log
 
 @torch.no_grad()
 def evaluate(env, actor, episodes: int) -> dict[str, float]:
-    """Deterministic-policy episodes: return mean/std, length, and the falling rate."""
+    """Deterministic-policy episodes: return mean/std, length, and the falling rate.
+    NaN/inf in an observation or reward raises :class:`NonFiniteEnvOutput`."""
     returns, lengths, falls = [], [], []
     with set_exploration_type(ExplorationType.DETERMINISTIC):
         for _ in range(episodes):
             rollout = env.rollout(1_000_000, actor, break_when_any_done=True)
+            for key in ("observation", ("next", "observation"), ("next", "reward")):
+                if not bool(torch.isfinite(rollout[key]).all()):
+                    raise NonFiniteEnvOutput(
+                        f"the evaluation env produced NaN/inf in {key!r} in evaluation "
+                        f"episode {len(returns)}"
+                    )
             returns.append(rollout["next", "episode_reward"][-1].item())
             lengths.append(rollout["next", "step_count"][-1].item())
             # terminated (fell) rather than truncated by the time limit
