@@ -16,6 +16,7 @@ from torchrl_rave import (
     WorldModelEnsemble,
     WorldModelEnsembleLoss,
 )
+from torchrl_rave.modules.world_model import network_sizes
 
 
 @pytest.fixture(scope="module", params=["Hopper-v5", "HalfCheetah-v5"])
@@ -37,12 +38,7 @@ def build(env, N=4, width=32):
         env.observation_spec,
         env.action_spec,
         num_models=N,
-        transition_cells=width,
-        transition_layers=3,
-        reward_cells=width,
-        reward_layers=2,
-        termination_cells=width,
-        termination_layers=2,
+        **network_sizes(transition=(width, 3), reward=(width, 2), termination=(width, 2)),
     )
     actor = Actor(
         torch.nn.Sequential(MLP(in_features=S, out_features=A, num_cells=[width]), torch.nn.Tanh()),

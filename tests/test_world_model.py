@@ -8,6 +8,7 @@ from tensordict import TensorDict
 from tensordict.nn import set_interaction_type
 
 from torchrl_rave.modules import EnsembleLinear, EnsembleMLP, RunningNormalizer, WorldModelEnsemble
+from torchrl_rave.modules.world_model import network_sizes
 from torchrl_rave.objectives import WorldModelEnsembleLoss, gaussian_nll
 
 
@@ -25,16 +26,7 @@ def fit_identity(wm: WorldModelEnsemble) -> WorldModelEnsemble:
 def small_model(S=3, A=2, N=4, width=16, **kw):
     return fit_identity(
         WorldModelEnsemble(
-            S,
-            A,
-            num_models=N,
-            transition_cells=width,
-            transition_layers=3,
-            reward_cells=width,
-            reward_layers=3,
-            termination_cells=width,
-            termination_layers=3,
-            **kw,
+            S, A, num_models=N, **network_sizes((width, 3), (width, 3), (width, 3)), **kw
         )
     )
 
@@ -345,17 +337,8 @@ class TestLearnsLinearGaussianSystem:
 
     def train(self, data, steps, seed):
         torch.manual_seed(seed)
-        wm = WorldModelEnsemble(
-            self.S,
-            self.Adim,
-            num_models=4,
-            transition_cells=64,
-            transition_layers=3,
-            reward_cells=16,
-            reward_layers=2,
-            termination_cells=8,
-            termination_layers=2,
-        )
+        sizes = network_sizes(transition=(64, 3), reward=(16, 2), termination=(8, 2))
+        wm = WorldModelEnsemble(self.S, self.Adim, num_models=4, **sizes)
         wm.update_normalizers_from(data)
         loss = WorldModelEnsembleLoss(wm)
         opt = torch.optim.Adam(wm.parameters(), lr=3e-3)

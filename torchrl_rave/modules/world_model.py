@@ -17,27 +17,26 @@ from torchrl_rave._checks import first_param_dtype, get_checked
 from torchrl_rave.modules.ensemble import EnsembleMLP, GaussianEnsembleMLP
 from torchrl_rave.modules.normalizer import RunningNormalizer
 
-__all__ = ["WorldModelEnsemble", "WORLD_MODEL_SIZES"]
+__all__ = ["WorldModelEnsemble", "WORLD_MODEL_SIZES", "network_sizes"]
+
 
 # Named sizes: ``cpu`` trains at a few ms per step on a laptop core; ``paper`` has the
 # paper's depths (appendix A) with the widths of STEVE's released configuration.
+def network_sizes(
+    transition: tuple[int, int], reward: tuple[int, int], termination: tuple[int, int]
+) -> dict[str, int]:
+    """``WorldModelEnsemble`` keyword arguments from ``(cells, layers)`` per network."""
+    out = {}
+    for name, (cells, layers) in zip(
+        ("transition", "reward", "termination"), (transition, reward, termination), strict=True
+    ):
+        out[f"{name}_cells"], out[f"{name}_layers"] = cells, layers
+    return out
+
+
 WORLD_MODEL_SIZES: dict[str, dict[str, int]] = {
-    "cpu": dict(
-        transition_cells=64,
-        transition_layers=4,
-        reward_cells=64,
-        reward_layers=3,
-        termination_cells=64,
-        termination_layers=3,
-    ),
-    "paper": dict(
-        transition_cells=512,
-        transition_layers=8,
-        reward_cells=128,
-        reward_layers=4,
-        termination_cells=128,
-        termination_layers=4,
-    ),
+    "cpu": network_sizes(transition=(64, 4), reward=(64, 3), termination=(64, 3)),
+    "paper": network_sizes(transition=(512, 8), reward=(128, 4), termination=(128, 4)),
 }
 
 
