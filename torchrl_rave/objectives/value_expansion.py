@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import field, make_dataclass
 from typing import Literal
 
 import torch
@@ -35,44 +35,50 @@ MixMode = Literal["inverse_variance", "fixed"]
 AlphaMode = Literal["constant", "adaptive", "tensordict"]
 
 
+_ESTIMATOR_KEYS = {
+    "advantage": "advantage",
+    "value_target": "value_target",
+    "value": "state_action_value",
+    "reward": "reward",
+    "done": "done",
+    "terminated": "terminated",
+    "observation": "observation",
+    "action": "action",
+}
+_DIAGNOSTIC_KEYS = ("alpha", "horizon_variance", "horizon_weights")  # <prefix>_<name>
+
+
 def _accepted_keys(prefix: str) -> type:
-    """The estimators' configurable keys, with the diagnostics under ``<prefix>_*``."""
+    """The estimators' configurable keys, with the diagnostics under ``<prefix>_*``.
+    (TorchRL's ``set_keys`` looks the names up in the class's own ``__dict__``, where a
+    dataclass keeps its defaults.)"""
+    defaults = {**_ESTIMATOR_KEYS, **{name: f"{prefix}_{name}" for name in _DIAGNOSTIC_KEYS}}
+    keys = make_dataclass(
+        "_AcceptedKeys", [(name, NestedKey, field(default=v)) for name, v in defaults.items()]
+    )
+    keys.__doc__ = _ACCEPTED_KEYS_DOC
+    return keys
 
-    @dataclass
-    class _AcceptedKeys:
-        """Configurable tensordict keys (``set_keys``).
 
-        Attributes:
-            advantage (NestedKey): where ``forward`` writes ``target - value``. Defaults to ``"advantage"``.
-            value_target (NestedKey): where ``forward`` writes the target. Defaults to ``"value_target"``.
-            value (NestedKey): the critic's output. Defaults to ``"state_action_value"``.
-            reward (NestedKey): reward, read under ``"next"``. Defaults to ``"reward"``.
-            done (NestedKey): done flag, read under ``"next"``. Defaults to ``"done"``.
-            terminated (NestedKey): termination flag, read under ``"next"``. Defaults to ``"terminated"``.
-            observation (NestedKey): observation entry. Defaults to ``"observation"``.
-            action (NestedKey): action entry. Defaults to ``"action"``.
-            alpha (NestedKey): per-sample alpha used (written; read in ``"tensordict"`` mode).
-                Defaults to ``"<prefix>_alpha"``: ``rave_alpha``, ``steve_alpha``,
-                ``mve_alpha``, ``value_expansion_alpha`` for the base class.
-            horizon_variance (NestedKey): ``V_H`` per sample, ``[*B, H_max + 1]``.
-                Defaults to ``"<prefix>_horizon_variance"``.
-            horizon_weights (NestedKey): normalised ``w_H`` per sample. Defaults to
-                ``"<prefix>_horizon_weights"``.
-        """
+_ACCEPTED_KEYS_DOC = """Configurable tensordict keys (``set_keys``).
 
-        advantage: NestedKey = "advantage"
-        value_target: NestedKey = "value_target"
-        value: NestedKey = "state_action_value"
-        reward: NestedKey = "reward"
-        done: NestedKey = "done"
-        terminated: NestedKey = "terminated"
-        observation: NestedKey = "observation"
-        action: NestedKey = "action"
-        alpha: NestedKey = f"{prefix}_alpha"
-        horizon_variance: NestedKey = f"{prefix}_horizon_variance"
-        horizon_weights: NestedKey = f"{prefix}_horizon_weights"
-
-    return _AcceptedKeys
+Attributes:
+    advantage (NestedKey): where ``forward`` writes ``target - value``. Defaults to ``"advantage"``.
+    value_target (NestedKey): where ``forward`` writes the target. Defaults to ``"value_target"``.
+    value (NestedKey): the critic's output. Defaults to ``"state_action_value"``.
+    reward (NestedKey): reward, read under ``"next"``. Defaults to ``"reward"``.
+    done (NestedKey): done flag, read under ``"next"``. Defaults to ``"done"``.
+    terminated (NestedKey): termination flag, read under ``"next"``. Defaults to ``"terminated"``.
+    observation (NestedKey): observation entry. Defaults to ``"observation"``.
+    action (NestedKey): action entry. Defaults to ``"action"``.
+    alpha (NestedKey): per-sample alpha used (written; read in ``"tensordict"`` mode).
+        Defaults to ``"<prefix>_alpha"``: ``rave_alpha``, ``steve_alpha``,
+        ``mve_alpha``, ``value_expansion_alpha`` for the base class.
+    horizon_variance (NestedKey): ``V_H`` per sample, ``[*B, H_max + 1]``.
+        Defaults to ``"<prefix>_horizon_variance"``.
+    horizon_weights (NestedKey): normalised ``w_H`` per sample. Defaults to
+        ``"<prefix>_horizon_weights"``.
+"""
 
 
 class ValueExpansionEstimator(ValueEstimatorBase):
