@@ -632,3 +632,20 @@ def test_estimator_on_td3_loss_takes_any_batch_shape(shape):
         outs.append(loss(data))
     for key in ("loss_actor", "loss_qvalue"):
         torch.testing.assert_close(outs[1][key], outs[0][key])
+
+
+@pytest.mark.parametrize("cls, prefix", [(RAVEValueEstimator, "rave"), (STEVEEstimator, "steve")])
+def test_diagnostics_are_keyed_by_their_estimator_and_renameable(cls, prefix):
+    loss = td3_loss()
+    estimator = cls.for_loss(loss, world_model=world_model(3), gamma=0.9, horizon=2)
+    data = batch(B=5)
+    estimator.value_estimate(data)
+    for name in ("alpha", "horizon_variance", "horizon_weights"):
+        assert f"{prefix}_{name}" in data.keys()
+    estimator.set_keys(alpha="my_alpha", horizon_weights=("diag", "w"))
+    renamed = batch(B=5)
+    estimator.value_estimate(renamed)
+    assert "my_alpha" in renamed.keys() and ("diag", "w") in renamed.keys(True)
+    assert f"{prefix}_alpha" not in renamed.keys()
+    with pytest.raises(KeyError, match="not an accepted tensordict key"):
+        estimator.set_keys(no_such_key="x")
