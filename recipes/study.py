@@ -131,6 +131,11 @@ def interval95(values: np.ndarray) -> tuple[float, float]:
     return float(values.mean()), float(half)
 
 
+def fmt_interval(values: np.ndarray) -> str:
+    mean, half = interval95(values)
+    return f"{mean:.0f} (1 seed)" if len(values) == 1 else f"{mean:.0f} ± {half:.0f}"
+
+
 def group(study, results: Path, task: str, algorithm: str) -> list[Path]:
     dirs = [result_dir(results, study, task, algorithm, s) for s in study.seeds]
     return [d for d in dirs if (d / "cell.json").exists()]
@@ -157,7 +162,7 @@ def report(args) -> str:
         "| --- " * (5 + len(at)) + "|",
     ]
     for task in study.tasks:
-        curves, diag = {}, {}
+        curves, diag, falling = {}, {}, {}
         for algorithm in study.algorithms:
             runs = group(study, args.results, task, algorithm)
             ref = REFERENCE.get(task.split("-")[0], {}).get(algorithm, "")
@@ -171,12 +176,9 @@ def report(args) -> str:
             cells = []
             for frame in at:
                 hit = np.flatnonzero(steps == frame)
-                cells.append(
-                    "n/a"
-                    if not hit.size
-                    else "{:.0f} ± {:.0f}".format(*interval95(values[:, hit[0]]))
-                )
-            _, falls = series(runs, "eval/falling_rate")
+                cells.append("n/a" if not hit.size else fmt_interval(values[:, hit[0]]))
+            fall_steps, falls = series(runs, "eval/falling_rate")
+            falling[algorithm] = (fall_steps, falls.mean(0), falls.min(0), falls.max(0))
             lines.append(
                 f"| {task} | {algorithm} | {len(runs)} | "
                 + " | ".join(cells)
@@ -201,16 +203,32 @@ def report(args) -> str:
                 title=f"{task}, {study.name}",
             )
         if diag:
+            bands = {
+                m.split("/")[1]: (s, v.mean(0), v.min(0), v.max(0)) for m, (s, v) in diag.items()
+            }
+            error = bands.pop("wm_transition_mse")
             band_plot(
-                {
-                    m.split("/")[1]: (s, v.mean(0), v.min(0), v.max(0))
-                    for m, (s, v) in diag.items()
-                    if m != "train/wm_transition_mse"
-                },
+                bands,
                 out / f"{study.name}_{task}_rave_diagnostics.png",
                 xlabel="environment frames",
-                ylabel="alpha, horizon weights",
+                ylabel="alpha, horizon weights (mean, band: min-max over seeds)",
                 title=f"RAVE diagnostics on {task}",
+            )
+            band_plot(
+                {"world-model transition MSE (normalised)": error},
+                out / f"{study.name}_{task}_rave_model_error.png",
+                xlabel="environment frames",
+                ylabel="mean over seeds, band: min-max",
+                title=f"RAVE's model error on {task}",
+            )
+        if falling:
+            band_plot(
+                falling,
+                out / f"{study.name}_{task}_falling_rate.png",
+                xlabel="environment frames",
+                ylabel="eval/falling_rate (mean, band: min-max over seeds)",
+                title=f"{task}, {study.name}: share of evaluation episodes that fell",
+                ylim=(-0.05, 1.05),
             )
     text = "\n".join(lines)
     (out / f"{study.name}.md").write_text(text + "\n")

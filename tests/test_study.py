@@ -1,0 +1,88 @@
+"""study.py: the t-interval by hand, the report from results/ alone (resumed runs read
+once), and a real one-cell study that exports its cell and skips it on the next run."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+import study
+from test_recipe import TINY
+
+RAVE_DIAGNOSTICS = ["alpha", "wm_transition_mse"] + [f"horizon_weight_h{h}" for h in range(4)]
+
+
+def write_study(tmp_path: Path, **fields) -> Path:
+    spec = {
+        "name": "tiny",
+        "tasks": ["Hopper-v5"],
+        "algorithms": ["rave", "ddpg"],
+        "seeds": [0, 1],
+        "frames": 200,
+        **fields,
+    }
+    path = tmp_path / "tiny.yaml"
+    path.write_text(json.dumps(spec))  # JSON is YAML
+    return path
+
+
+def write_cell(results: Path, algorithm: str, seed: int, metrics: dict[str, list]) -> None:
+    cell = results / "tiny" / "Hopper-v5" / algorithm / f"seed{seed}"
+    for metric, rows in metrics.items():
+        csv = cell / algorithm / "scalars" / f"{metric}.csv"
+        csv.parent.mkdir(parents=True, exist_ok=True)
+        csv.write_text("".join(f"{step},{value}\n" for step, value in rows))
+    (cell / "cell.json").write_text("{}")
+
+
+def test_interval95_by_hand():
+    mean, half = study.interval95(np.array([1.0, 2.0, 3.0]))
+    assert mean == 2.0
+    assert half == pytest.approx(4.303 * 1.0 / np.sqrt(3))  # t(0.975, 2) * s / sqrt(n)
+    assert np.isnan(study.interval95(np.array([5.0]))[1])
+
+
+def test_report_from_results_alone(tmp_path, capsys):
+    results, figures = tmp_path / "results", tmp_path / "figures"
+    diag = {f"train/{m}": [(100, 0.5), (200, 0.25)] for m in RAVE_DIAGNOSTICS}
+    # seed 0 was resumed: step 100 was logged twice, the later value (10) counts
+    write_cell(results, "rave", 0, {"eval/return": [(100, 99), (100, 10), (200, 20)],
+                                    "eval/falling_rate": [(100, 1.0), (200, 0.5)], **diag})  # fmt: skip
+    write_cell(results, "rave", 1, {"eval/return": [(100, 30), (200, 40)],
+                                    "eval/falling_rate": [(100, 1.0), (200, 0.0)], **diag})  # fmt: skip
+    write_cell(results, "ddpg", 0, {"eval/return": [(100, 7), (200, 8)],
+                                    "eval/falling_rate": [(100, 1.0), (200, 1.0)]})  # fmt: skip
+    # ddpg seed 1 has metrics but no cell.json: unfinished, left out
+    write_cell(results, "ddpg", 1, {"eval/return": [(100, 1000), (200, 1000)],
+                                    "eval/falling_rate": [(100, 0.0), (200, 0.0)]})  # fmt: skip
+    (results / "tiny" / "Hopper-v5" / "ddpg" / "seed1" / "cell.json").unlink()
+    study.main(["report", "--config", str(write_study(tmp_path)), "--results", str(results),
+                "--figures", str(figures)])  # fmt: skip
+    table = (figures / "tiny.md").read_text()
+    # rave: [10, 30] at 100 and [20, 40] at 200: mean 20 / 30, half 12.706 * 14.14 / 1.414
+    assert "| Hopper-v5 | rave | 2 | 20 ± 127 | 30 ± 127 | 0.25 |" in table
+    assert "| Hopper-v5 | ddpg | 1 | 7 (1 seed) | 8 (1 seed) | 1.00 |" in table
+    assert table in capsys.readouterr().out
+    for name in ("return", "falling_rate", "rave_diagnostics", "rave_model_error"):
+        assert (figures / f"tiny_Hopper-v5_{name}.png").stat().st_size > 10_000
+
+
+def test_run_exports_a_finished_cell_and_skips_it_next_time(tmp_path, capsys):
+    """One real cell (DDPG, 400 frames): its CSVs and cell.json land in results/, nothing
+    of its checkpoints does, and a second run has nothing to do."""
+    config = write_study(tmp_path, algorithms=["ddpg"], seeds=[0], frames=400,
+                         overrides=[o for o in TINY if "total_frames" not in o])  # fmt: skip
+    args = ["run", "--config", str(config), "--results", str(tmp_path / "results"),
+            "--out", str(tmp_path / "runs"), "--jobs", "1"]  # fmt: skip
+    study.main(args)
+    cell = tmp_path / "results" / "tiny" / "Hopper-v5" / "ddpg" / "seed0"
+    info = json.loads((cell / "cell.json").read_text())
+    assert info["frames"] == 400 and len(info["commit"]) == 40
+    assert info["config"]["algorithm"] == "ddpg" and info["config"]["env"]["seed"] == 0
+    steps, _ = study.read_scalar(cell, "eval/return")
+    assert steps.tolist() == [200, 400]
+    assert not list(cell.rglob("checkpoint*"))
+    study.main(args)
+    assert "tiny: 0 cells to go" in capsys.readouterr().out
