@@ -70,3 +70,17 @@ def test_runs_and_writes_ratios(tmp_path):
     assert rows["ours: ddpg"]["gflop_per_update"] == pytest.approx(
         rows["plain PyTorch DDPG"]["gflop_per_update"], rel=0.15
     )
+
+
+def test_profile_names_the_target_critic_rows(capsys):
+    """profile_update.py: the shape table holds the K = 4 critics on the target's
+    M (1 + N H) = 128 x 13 = 1664 rows, the biggest item of a default RAVE update."""
+    import profile_update
+
+    threads = torch.get_num_threads()
+    try:
+        text = profile_update.main(["--steps", "2", "--rows", "40", "--target-only"])
+    finally:
+        torch.set_num_threads(threads)
+    assert "rave value target, default sizes, 1 thread(s):" in text
+    assert "[4, 1664, 64]" in text and "aten::bmm" in text
