@@ -252,7 +252,6 @@ class EnsembleDDPGLoss(LossModule):
         )
         weights = self._maybe_get_priority_weight(tensordict)
         tensordict = tensordict.clone(False)
-        keys = self.tensor_keys
         if not isinstance(self.value_estimator, ValueExpansionEstimator):
             # TD(0)/TD(lambda) read the next state's value from the batch: the minimum over
             # the target critics at the target policy's action (one critic: plain DDPG).
