@@ -34,10 +34,10 @@ def test_compiled_updates_match_eager(algorithm):
         overrides = [*SMALL, f"compile.enabled={str(compiled).lower()}"]
         step, _, loss = bench.recipe_update(algorithm, overrides, torch.device("cpu"))
         torch.manual_seed(1)
-        # compiled code draws RAVE's rollout noise from torch's own generator, as eager does
-        with torch._inductor.config.patch(fallback_random=True):
-            for batch in data:
-                step(batch)
+        # compile_loss has the compiled code draw RAVE's rollout noise from torch's own
+        # generator, as eager code does: the same seed gives the same updates
+        for batch in data:
+            step(batch)
         params[compiled] = {k: v.detach().clone() for k, v in loss.named_parameters()}
         if algorithm == "rave":  # the estimator's diagnostics come out of the compiled step
             alpha = loss.value_estimator.diagnostics["rave_alpha"]
@@ -52,9 +52,9 @@ def test_compiled_updates_match_eager(algorithm):
 
 
 def test_compiled_run_trains(monkeypatch, tmp_path):
-    """The recipe's ``train`` honours ``compile.enabled``: the agent's update goes through
-    ``torch.compile`` (DDPG keeps this cheap), and so does the world-model trainer's step
-    for model-based algorithms (RAVE's compiled steps are checked above)."""
+    """The recipe's ``train`` honours ``compile.enabled``: the agent's loss forward goes
+    through ``torch.compile`` (DDPG keeps this cheap), and so does the world-model
+    trainer's for model-based algorithms (RAVE's compiled steps are checked above)."""
     compiled = []
     real = torch.compile
 
@@ -65,14 +65,18 @@ def test_compiled_run_trains(monkeypatch, tmp_path):
     monkeypatch.setattr(torch, "compile", counting)
     cfg = make_cfg(*TINY, "algorithm=ddpg", "compile.enabled=true")
     result = rave_mujoco.train(cfg, str(tmp_path))
-    assert compiled == [("agent_step", {"mode": None})]
+    assert compiled == [("loss_and_total", {"options": {"fallback_random": True}})]
     assert result["frames"] == 400
     assert result["updates"] == 30  # utd 0.1 x the 300 frames after init_random_frames
     compiled.clear()
     rave = make_cfg(*TINY, "algorithm=rave", "compile.enabled=true", "compile.mode=max-autotune")
     env = make_env(rave, torch.device("cpu"))
     make_agent(rave, env)  # compiling happens at the first call: nothing runs here
-    assert compiled == [("_update_eager", {"mode": "max-autotune"})]
+    # compile.mode's own inductor options, plus fallback_random
+    mode_options = {"max_autotune": True, "triton.cudagraphs": True, "coordinate_descent_tuning": True}
+    assert compiled == [
+        ("_loss_total_eager", {"options": {**mode_options, "fallback_random": True}})
+    ]
 
 
 def test_bad_compile_settings_are_refused():

@@ -21,6 +21,17 @@ from torch import nn
 from torch.nn import functional as F
 
 
+def inplace_activation(activation: nn.Module):
+    """The in-place form of a parameter-free activation (``torch.relu_`` for ``nn.ReLU``,
+    likewise Tanh and Sigmoid), or ``None``. Applied to the fresh output of a linear
+    layer, it skips one allocation per layer; autograd allows it there, as a linear
+    layer's backward does not read its own output."""
+    return _INPLACE.get(type(activation))
+
+
+_INPLACE = {nn.ReLU: torch.relu_, nn.Tanh: torch.tanh_, nn.Sigmoid: torch.sigmoid_}
+
+
 def _check_layout(x: torch.Tensor, num_members: int, in_features: int, per_member: bool) -> None:
     if x.shape[-1] != in_features:
         raise ValueError(
@@ -116,13 +127,18 @@ class EnsembleMLP(nn.Module):
         )
         self.activation = activation()
 
+    def activate(self, x: torch.Tensor) -> torch.Tensor:
+        """The activation on a linear layer's fresh output (in place where it can be)."""
+        inplace = inplace_activation(self.activation)
+        return self.activation(x) if inplace is None else inplace(x)
+
     def forward(self, x: torch.Tensor, per_member: bool = False) -> torch.Tensor:
         _check_layout(x, self.num_members, self.in_features, per_member)
         for n, layer in enumerate(self.layers):
             # after the first layer every member has its own rows
             x = layer(x, per_member=per_member or n > 0)
             if n < len(self.layers) - 1:
-                x = self.activation(x)
+                x = self.activate(x)
         return x
 
 
@@ -173,7 +189,6 @@ class GaussianEnsembleMLP(nn.Module):
         self.trunk = EnsembleMLP(
             num_members, in_features, num_cells[-1], num_cells[:-1], activation
         )
-        self.activation = activation()
         self.mean_head = EnsembleLinear(num_members, num_cells[-1], out_features)
         self.logvar_head = EnsembleLinear(num_members, num_cells[-1], out_features)
         self.max_logvar = nn.Parameter(torch.full((num_members, 1, out_features), init_max_logvar))
@@ -182,7 +197,7 @@ class GaussianEnsembleMLP(nn.Module):
     def forward(
         self, x: torch.Tensor, per_member: bool = False
     ) -> tuple[torch.Tensor, torch.Tensor]:
-        h = self.activation(self.trunk(x, per_member=per_member))
+        h = self.trunk.activate(self.trunk(x, per_member=per_member))
         mean = self.mean_head(h, per_member=True)
         raw = self.logvar_head(h, per_member=True)
         logvar = self.max_logvar - F.softplus(self.max_logvar - raw)

@@ -31,6 +31,8 @@ from torch import nn
 from torch.nn import functional as F
 from torchrl.modules import MLP, TanhModule
 
+from torchrl_rave.modules.ensemble import inplace_activation
+
 __all__ = ["PlannedCalls", "TensorCall"]
 
 # Parameter-free activations that act element-wise (safe to apply to [K, M, F] at once).
@@ -169,10 +171,16 @@ class TensorCall:
                 _, in_keys, out_key, layers = step
                 xs = [values[k] for k in in_keys]
                 x = xs[0] if len(xs) == 1 else torch.cat(xs, -1)
+                fresh = False  # whether x is a linear layer's own output
                 for key, is_linear, layer in layers:
                     if not is_linear:
-                        x = layer.forward(x)  # element-wise, parameter-free: no hooks needed
+                        # element-wise and parameter-free: no hooks needed; in place on a
+                        # linear layer's output, never on the caller's input
+                        inplace = inplace_activation(layer) if fresh else None
+                        x = layer.forward(x) if inplace is None else inplace(x)
+                        fresh = False
                         continue
+                    fresh = True
                     if params is None:
                         w, b = layer.weight, layer.bias
                     else:

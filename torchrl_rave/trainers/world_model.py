@@ -90,7 +90,7 @@ class WorldModelTrainer(TrainerHookBase):
         self.pretrained = False
         self.calls = 0  # step() calls: one per agent update
         self.updates = 0  # optimiser steps taken
-        self._update = self._update_eager
+        self._loss_total = self._loss_total_eager
 
     # ---------------------------------------------------------------- the loop
     def extend(self, data: TensorDictBase) -> None:
@@ -127,18 +127,26 @@ class WorldModelTrainer(TrainerHookBase):
         return self._update(batch)
 
     def compile(self, mode: str | None = None) -> WorldModelTrainer:
-        """Runs :meth:`update`'s loss, backward and optimiser step through ``torch.compile``."""
-        self._update = torch.compile(self._update_eager, mode=mode)
+        """Runs :meth:`update`'s loss forward (and so its backward) through
+        ``torch.compile``; the optimiser step stays eager, see
+        :func:`~torchrl_rave.training.update.compile_loss`."""
+        from torchrl_rave.training.update import compile_loss
+
+        self._loss_total = compile_loss(self._loss_total_eager, mode)
         return self
 
     @staticmethod
     def _batch(source) -> TensorDictBase:
         return source.sample() if isinstance(source, ReplayBuffer) else source
 
-    def _update_eager(self, batch: TensorDictBase) -> TensorDictBase:
+    def _loss_total_eager(self, batch: TensorDictBase):
         out = self.loss(batch)
+        return out, out["loss_transition"] + out["loss_reward"] + out["loss_termination"]
+
+    def _update(self, batch: TensorDictBase) -> TensorDictBase:
+        out, total = self._loss_total(batch)
         self.optimizer.zero_grad()
-        (out["loss_transition"] + out["loss_reward"] + out["loss_termination"]).backward()
+        total.backward()
         self.optimizer.step()
         return out.detach()
 
