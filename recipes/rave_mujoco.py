@@ -6,7 +6,7 @@ python recipes/rave_mujoco.py preset=paper env.name=HalfCheetah-v5           # p
 python recipes/rave_mujoco.py resume=outputs/2026-11-22/10-00-00             # continue a run
 
 ``algorithm`` picks ddpg | mve | steve | rave | rave_constant (the estimator settings of one
-K-critic DDPG learner) or td3 | sac (TorchRL's losses). The pieces come from
+K-critic DDPG learner) or td3 | sac | ppo (TorchRL's losses; ppo learns on-policy). The pieces come from
 ``torchrl_rave.training``; this file is the training loop. See recipes/README.md for every
 key and metric.
 """
@@ -43,9 +43,14 @@ from torchrl_rave.training.collect import (
     shutdown_on_error,
     stop_run,
 )
-from torchrl_rave.training.config import check_config, check_resumable, replay_buffer_size
+from torchrl_rave.training.config import (
+    check_config,
+    check_resumable,
+    replay_buffer_size,
+    resolve_config,
+)
 from torchrl_rave.training.evaluate import evaluate, make_logger
-from torchrl_rave.training.update import make_agent_step
+from torchrl_rave.training.update import make_agent_step, ppo_update
 
 CONFIG = Path(__file__).with_name("config.yaml")
 
@@ -61,7 +66,7 @@ def train(cfg: DictConfig, run_dir: str) -> dict[str, float]:
     """Runs (or, with ``cfg.resume`` set, continues) one training run; returns the final
     evaluation metrics. Everything is written under ``run_dir``."""
     check_config(cfg)
-    cfg = cfg.copy()
+    cfg = resolve_config(cfg).copy()  # ppo: its rollout sets the collector's batch
     if cfg.resume:
         run_dir = cfg.resume
         saved = saved_config(run_dir, defaults())
@@ -78,7 +83,9 @@ def train(cfg: DictConfig, run_dir: str) -> dict[str, float]:
     env, eval_env = make_env(cfg, device), make_env(cfg, device)
     agent = make_agent(cfg, env, device)
     rb = make_replay_buffer(cfg, device)
-    update_agent = make_agent_step(cfg, agent.loss, agent.optimizers, agent.target_updater)
+    update_agent = None
+    if not agent.algorithm.on_policy:
+        update_agent = make_agent_step(cfg, agent.loss, agent.optimizers, agent.target_updater)
 
     # Counters and checkpoints; a resumed run restores everything it saved. Before any
     # work: the checkpoints can be written, and the disk has room for one.
@@ -120,8 +127,8 @@ def train(cfg: DictConfig, run_dir: str) -> dict[str, float]:
             batches = guarded_batches(
                 collector, cfg, save_checkpoint, lambda: counters["frames"], run_dir
             )
-            for data in batches:
-                data = data.reshape(-1)
+            for batch in batches:
+                data = batch.reshape(-1)
                 collect_s = time.perf_counter() - t_collect
                 bad = check_finite(data)
                 if bad is not None:
@@ -133,13 +140,15 @@ def train(cfg: DictConfig, run_dir: str) -> dict[str, float]:
                         f"(frame {counters['frames']}): fix the env and rerun with "
                         f"resume={run_dir}"
                     )
-                rb.extend(data)
-                if agent.world_model_trainer is not None:
-                    agent.world_model_trainer.extend(data)
                 counters["frames"] += data.numel()
-
                 t_update = time.perf_counter()
-                acc = update_on_batch(cfg, agent, update_agent, rb, counters, data.numel())
+                if agent.algorithm.on_policy:  # GAE runs along each worker's time axis
+                    acc = ppo_update(cfg, agent, rb, batch, counters)
+                else:
+                    rb.extend(data)
+                    if agent.world_model_trainer is not None:
+                        agent.world_model_trainer.extend(data)
+                    acc = update_on_batch(cfg, agent, update_agent, rb, counters, data.numel())
                 update_s = time.perf_counter() - t_update
                 if counters["updates"] - synced_at >= cfg.collector.weight_sync_every:
                     push_policy_weights(collector, agent.policy)

@@ -136,7 +136,7 @@ class TestConfigErrors:
     @pytest.mark.parametrize(
         "override, message",
         [
-            ("algorithm=ppo", "algorithm='ppo'.*one of \\['ddpg', 'mve'"),
+            ("algorithm=dqn", "algorithm='dqn'.*one of \\['ddpg', 'mve'.*'ppo'\\]"),
             ("env.name=Hoper-v5", "env.name='Hoper-v5' is not a registered gymnasium id"),
             ("collector.total_frames=-5", "collector.total_frames=-5 is invalid"),
             ("collector.frames_per_batch=0", "collector.frames_per_batch=0"),

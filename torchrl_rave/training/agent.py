@@ -9,13 +9,14 @@ import torch
 from omegaconf import DictConfig, OmegaConf
 from tensordict import TensorDictBase
 from tensordict.nn import (
+    AddStateIndependentNormalScale,
     NormalParamExtractor,
     TensorDictModule,
     TensorDictModuleBase,
     TensorDictSequential,
 )
 from torch import nn
-from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
+from torchrl.data import LazyTensorStorage, SamplerWithoutReplacement, TensorDictReplayBuffer
 from torchrl.envs import (
     DoubleToFloat,
     GymEnv,
@@ -26,7 +27,14 @@ from torchrl.envs import (
 )
 from torchrl.envs.utils import ExplorationType
 from torchrl.modules import MLP, ProbabilisticActor, TanhModule, TanhNormal, ValueOperator
-from torchrl.objectives import LossModule, SACLoss, SoftUpdate, TD3Loss, ValueEstimators
+from torchrl.objectives import (
+    ClipPPOLoss,
+    LossModule,
+    SACLoss,
+    SoftUpdate,
+    TD3Loss,
+    ValueEstimators,
+)
 
 from torchrl_rave.modules import EpsilonGaussianModule, WorldModelEnsemble
 from torchrl_rave.objectives import (
@@ -36,7 +44,13 @@ from torchrl_rave.objectives import (
     make_value_expansion_estimator,
 )
 from torchrl_rave.trainers import WorldModelTrainer
-from torchrl_rave.training.config import ALGORITHMS, Algorithm, num_critics, replay_buffer_size
+from torchrl_rave.training.config import (
+    ALGORITHMS,
+    Algorithm,
+    num_critics,
+    replay_buffer_size,
+    resolve_config,
+)
 
 __all__ = [
     "Agent",
@@ -58,7 +72,7 @@ class Agent:
     actor: TensorDictModuleBase  # the deterministic policy (evaluation)
     policy: TensorDictModuleBase  # the exploration policy the collector runs
     loss: LossModule
-    target_updater: SoftUpdate
+    target_updater: SoftUpdate | None  # None: no target networks (ppo)
     optimizers: dict[str, torch.optim.Optimizer]
     world_model: WorldModelEnsemble | None = None
     world_model_trainer: WorldModelTrainer | None = None
@@ -160,12 +174,13 @@ def make_env(cfg: DictConfig, device: torch.device) -> TransformedEnv:
 
 
 def _mlp(cfg: DictConfig, in_features: int, out_features: int, cells: int) -> MLP:
-    # num_layers counts FC layers with the output layer (paper appendix A: 4)
+    # num_layers counts FC layers with the output layer (paper appendix A: 4); PPO keeps
+    # the tanh hidden units of its usual MuJoCo networks
     return MLP(
         in_features=in_features,
         out_features=out_features,
         num_cells=[cells] * (cfg.network.num_layers - 1),
-        activation_class=nn.ReLU,
+        activation_class=nn.Tanh if cfg.algorithm == "ppo" else nn.ReLU,
     )
 
 
@@ -173,10 +188,23 @@ def make_actor(cfg: DictConfig, env, algo: Algorithm):
     """The policy and the exploration policy the collector runs.
 
     Deterministic policies end in :class:`~torchrl.modules.TanhModule`, which maps onto the
-    action box; SAC's policy is a tanh-Gaussian and explores by sampling.
+    action box; SAC's policy is a tanh-Gaussian and explores by sampling, and so is PPO's,
+    with a state-independent scale and the log-probability of each action it takes.
     """
     spec = env.action_spec
     S, A = env.observation_spec["observation"].shape[-1], spec.shape[-1]
+    if algo.loss == "ppo":
+        net = nn.Sequential(_mlp(cfg, S, A, cfg.network.actor_cells), AddStateIndependentNormalScale(A))
+        actor = ProbabilisticActor(
+            TensorDictModule(net, in_keys=["observation"], out_keys=["loc", "scale"]),
+            in_keys=["loc", "scale"],
+            spec=spec,
+            distribution_class=TanhNormal,
+            distribution_kwargs={"low": spec.space.low, "high": spec.space.high},
+            default_interaction_type=ExplorationType.RANDOM,
+            return_log_prob=True,
+        )
+        return actor, actor
     if algo.loss == "sac":
         net = nn.Sequential(_mlp(cfg, S, 2 * A, cfg.network.actor_cells), NormalParamExtractor())
         actor = ProbabilisticActor(
@@ -201,8 +229,11 @@ def make_actor(cfg: DictConfig, env, algo: Algorithm):
 
 
 def make_critic(cfg: DictConfig, env) -> ValueOperator:
+    """``Q(s, a)``; for ppo the state value ``V(s)``."""
     S = env.observation_spec["observation"].shape[-1]
     A = env.action_spec.shape[-1]
+    if cfg.algorithm == "ppo":
+        return ValueOperator(_mlp(cfg, S, 1, cfg.network.critic_cells), in_keys=["observation"])
     return ValueOperator(
         _mlp(cfg, S + A, 1, cfg.network.critic_cells), in_keys=["observation", "action"]
     )
@@ -224,8 +255,23 @@ def make_world_model(cfg: DictConfig, env) -> WorldModelEnsemble:
 
 
 def make_loss(cfg: DictConfig, env, algo: Algorithm, actor, critic, world_model):
-    """The TorchRL loss with its target estimator, and the soft target updater."""
+    """The TorchRL loss with its target estimator, and the soft target updater (``None``
+    for ppo, which has no target networks)."""
     K = num_critics(cfg, algo)
+    if algo.loss == "ppo":
+        p = cfg.ppo
+        loss = ClipPPOLoss(
+            actor,
+            critic,
+            clip_epsilon=p.clip_epsilon,
+            entropy_bonus=p.entropy_coef > 0,
+            entropy_coeff=p.entropy_coef,
+            critic_coeff=p.critic_coef,
+            loss_critic_type="l2",
+            normalize_advantage=True,
+        )
+        loss.make_value_estimator(ValueEstimators.GAE, gamma=cfg.optim.gamma, lmbda=p.gae_lambda)
+        return loss, None
     if algo.loss == "sac":
         loss = SACLoss(
             actor, critic, num_qvalue_nets=K, loss_function="l2", action_spec=env.action_spec
@@ -264,18 +310,27 @@ def critic_params(loss):
     """The critics' parameters: ``value_network`` (EnsembleDDPGLoss) or ``qvalue_network``."""
     if isinstance(loss, EnsembleDDPGLoss):
         return loss.value_network_params, loss.value_network
+    if isinstance(loss, ClipPPOLoss):
+        return loss.critic_network_params, loss.critic_network
     return loss.qvalue_network_params, loss.qvalue_network
 
 
 def critic_loss_key(loss) -> str:
+    if isinstance(loss, ClipPPOLoss):
+        return "loss_critic"
     return "loss_value" if isinstance(loss, EnsembleDDPGLoss) else "loss_qvalue"
 
 
 def make_optimizers(cfg: DictConfig, loss) -> dict[str, torch.optim.Optimizer]:
     # fused Adam: one kernel per step instead of a Python loop over tensors (3x on CPU)
-    def adam(params, lr):
-        return torch.optim.Adam(list(params), lr=lr, fused=True)
+    def adam(params, lr, **kwargs):
+        return torch.optim.Adam(list(params), lr=lr, fused=True, **kwargs)
 
+    if isinstance(loss, ClipPPOLoss):  # one learning rate, annealed by the update
+        return {
+            "actor": adam(loss.actor_network_params.values(True, True), cfg.ppo.lr, eps=1e-5),
+            "critic": adam(critic_params(loss)[0].values(True, True), cfg.ppo.lr, eps=1e-5),
+        }
     optimizers = {
         "actor": adam(loss.actor_network_params.values(True, True), cfg.optim.lr_actor),
         "critic": adam(critic_params(loss)[0].values(True, True), cfg.optim.lr_critic),
@@ -306,8 +361,13 @@ def make_world_model_trainer(
 
 
 def make_replay_buffer(cfg: DictConfig, device) -> TensorDictReplayBuffer:
+    """The replay buffer; for ppo the rollout buffer of one batch, read in minibatches
+    without replacement (see :func:`~torchrl_rave.training.config.resolve_config`)."""
+    cfg = resolve_config(cfg)
+    sampler = SamplerWithoutReplacement() if cfg.algorithm == "ppo" else None
     return TensorDictReplayBuffer(
         storage=LazyTensorStorage(replay_buffer_size(cfg), device=device),
+        sampler=sampler,
         batch_size=cfg.replay_buffer.batch_size,
     )
 

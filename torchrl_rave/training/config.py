@@ -17,6 +17,7 @@ __all__ = [
     "check_resumable",
     "num_critics",
     "replay_buffer_size",
+    "resolve_config",
 ]
 
 COMPILE_MODES = [None, "default", "reduce-overhead", "max-autotune", "max-autotune-no-cudagraphs"]
@@ -26,14 +27,19 @@ COMPILE_MODES = [None, "default", "reduce-overhead", "max-autotune", "max-autotu
 class Algorithm:
     """What ``algorithm=<name>`` selects: the TorchRL loss, the target estimator, K."""
 
-    loss: str  # "ensemble_ddpg" | "td3" | "sac"
-    estimator: str | None  # value-expansion estimator name; None: TD(0)
+    loss: str  # "ensemble_ddpg" | "td3" | "sac" | "ppo"
+    estimator: str | None  # value-expansion estimator name; None: TD(0) (GAE for ppo)
     num_critics: int
     adaptive_alpha: bool = True
 
     @property
     def model_based(self) -> bool:
         return self.estimator is not None
+
+    @property
+    def on_policy(self) -> bool:
+        """Learns from each batch it collects, then drops it (PPO); the others replay."""
+        return self.loss == "ppo"
 
 
 ALGORITHMS = {
@@ -44,7 +50,9 @@ ALGORITHMS = {
     "rave_constant": Algorithm("ensemble_ddpg", "rave", 4, adaptive_alpha=False),
     "td3": Algorithm("td3", None, 2),
     "sac": Algorithm("sac", None, 2),
+    "ppo": Algorithm("ppo", None, 1),
 }
+PPO_SCHEDULES = ["linear", "constant"]
 # the keys that size the world model: checked as positive, fixed on resume
 WORLD_MODEL_SIZES = ["world_model.num_models"] + [
     f"world_model.{part}_{dim}"
@@ -69,6 +77,9 @@ def check_config(cfg: DictConfig) -> Algorithm:
     import gymnasium as gym
 
     _require(cfg.algorithm in ALGORITHMS, "algorithm", cfg.algorithm, f"one of {list(ALGORITHMS)}")
+    if cfg.algorithm == "ppo":
+        check_ppo_config(cfg)
+        cfg = resolve_config(cfg)  # the checks below see what runs
     _require(
         cfg.threads is None
         or (
@@ -231,6 +242,45 @@ def check_config(cfg: DictConfig) -> Algorithm:
     return ALGORITHMS[cfg.algorithm]
 
 
+def check_ppo_config(cfg: DictConfig) -> None:
+    """The ``ppo.*`` keys (``algorithm=ppo``)."""
+    p = cfg.ppo
+    for key in ("rollout_frames", "epochs", "minibatch_size"):
+        value = p[key]
+        _require(isinstance(value, int) and not isinstance(value, bool) and value >= 1,
+                 f"ppo.{key}", value, "an integer >= 1")  # fmt: skip
+    _require(p.minibatch_size <= p.rollout_frames, "ppo.minibatch_size", p.minibatch_size,
+             f"<= ppo.rollout_frames ({p.rollout_frames})")  # fmt: skip
+    _require(0 < float(p.clip_epsilon) < 1, "ppo.clip_epsilon", p.clip_epsilon, "in (0, 1)")
+    _require(0 <= float(p.gae_lambda) <= 1, "ppo.gae_lambda", p.gae_lambda, "in [0, 1]")
+    _require(float(p.lr) > 0, "ppo.lr", p.lr, "a number > 0")
+    for key in ("entropy_coef", "critic_coef"):
+        _require(float(p[key]) >= 0, f"ppo.{key}", p[key], "a number >= 0")
+    _require(p.max_grad_norm is None or float(p.max_grad_norm) > 0, "ppo.max_grad_norm",
+             p.max_grad_norm, "null (no clipping) or a number > 0")  # fmt: skip
+    _require(p.lr_schedule in PPO_SCHEDULES, "ppo.lr_schedule", p.lr_schedule,
+             f"one of {PPO_SCHEDULES}")  # fmt: skip
+    _require(not cfg.logger.q_points, "logger.q_points", cfg.logger.q_points,
+             "null with algorithm=ppo (its critic is V(s), there is no Q(s, a) to log)")  # fmt: skip
+    _require(not cfg.compile.enabled, "compile.enabled", cfg.compile.enabled,
+             "false with algorithm=ppo (its update is not compiled)")  # fmt: skip
+
+
+def resolve_config(cfg: DictConfig) -> DictConfig:
+    """The settings a run actually uses: with ``algorithm=ppo`` the collector gathers
+    ``ppo.rollout_frames`` per batch from the first frame on (no random warm-up), and the
+    rollout buffer holds one batch, read in minibatches of ``ppo.minibatch_size``. Other
+    algorithms are returned as they are."""
+    if cfg.algorithm != "ppo":
+        return cfg
+    cfg = cfg.copy()
+    cfg.collector.frames_per_batch = min(cfg.ppo.rollout_frames, cfg.collector.total_frames)
+    cfg.collector.init_random_frames = 0
+    cfg.replay_buffer.size = cfg.collector.frames_per_batch
+    cfg.replay_buffer.batch_size = min(cfg.ppo.minibatch_size, cfg.replay_buffer.size)
+    return cfg
+
+
 def check_ray_config(cfg: DictConfig) -> None:
     """The ``ray.*`` keys, and Ray itself, checked before anything starts."""
     import importlib.util
@@ -298,6 +348,7 @@ FIXED_ON_RESUME = [
     "env.name",
     "network",
     *WORLD_MODEL_SIZES,
+    "ppo.rollout_frames",
     "estimator.horizon",
 ]
 

@@ -2,13 +2,14 @@
 
 from __future__ import annotations
 
+from collections import defaultdict
 from collections.abc import Callable
 
 import torch
 from omegaconf import DictConfig
 from tensordict import TensorDictBase
 
-__all__ = ["agent_update", "compile_loss", "make_agent_step", "total_loss"]
+__all__ = ["agent_update", "compile_loss", "make_agent_step", "ppo_update", "total_loss"]
 
 
 def total_loss(loss) -> Callable[[TensorDictBase], tuple[TensorDictBase, torch.Tensor]]:
@@ -74,3 +75,50 @@ def make_agent_step(cfg: DictConfig, loss, optimizers: dict, target_updater):
         return agent_update(loss, optimizers, target_updater, batch, step_actor, loss_fn)
 
     return agent_step
+
+
+def ppo_update(
+    cfg: DictConfig, agent, rollout_buffer, data: TensorDictBase, counters: dict
+) -> dict[str, list[torch.Tensor]]:
+    """One PPO iteration on a freshly collected batch ``data`` (time along its last batch
+    dimension): ``ppo.epochs`` passes, each computing GAE with the current value network
+    and then taking one clipped-objective step per minibatch of ``rollout_buffer``
+    (sampled without replacement). The learning rate follows ``ppo.lr_schedule`` from the
+    frames collected before this batch, so a resumed run continues it exactly.
+    ``counters["updates"]`` counts minibatch steps. Returns each step's metrics."""
+    p, loss, optimizers = cfg.ppo, agent.loss, agent.optimizers
+    lr = p.lr
+    if p.lr_schedule == "linear":
+        before = counters["frames"] - data.numel()
+        lr = p.lr * max(0.0, 1.0 - before / cfg.collector.total_frames)
+    for opt in optimizers.values():
+        for group in opt.param_groups:
+            group["lr"] = lr
+    params = [q for opt in optimizers.values() for g in opt.param_groups for q in g["params"]]
+    acc = defaultdict(list)
+    for _ in range(p.epochs):
+        with torch.no_grad():
+            loss.value_estimator(data)  # advantage and value target, in place
+        rollout_buffer.empty()  # exactly this batch: a short last batch leaves nothing stale
+        rollout_buffer.extend(data.reshape(-1))
+        for batch in rollout_buffer:
+            out = loss(batch)
+            total = out["loss_objective"] + out["loss_critic"]
+            if "loss_entropy" in out.keys():  # noqa: SIM118 (a TensorDict)
+                total = total + out["loss_entropy"]
+            for opt in optimizers.values():
+                opt.zero_grad()
+            total.backward()
+            if p.max_grad_norm is not None:
+                torch.nn.utils.clip_grad_norm_(params, p.max_grad_norm)
+            for opt in optimizers.values():
+                opt.step()
+            counters["updates"] += 1
+            acc["train/loss_actor"].append(out["loss_objective"].detach())
+            acc["train/loss_critic"].append(out["loss_critic"].detach())
+            acc["train/ppo_kl_approx"].append(out["kl_approx"].detach())
+            acc["train/ppo_clip_fraction"].append(out["clip_fraction"].detach())
+            if "entropy" in out.keys():  # noqa: SIM118
+                acc["train/ppo_entropy"].append(out["entropy"].detach())
+    acc["train/lr"].append(torch.tensor(lr))
+    return acc
