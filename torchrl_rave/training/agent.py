@@ -36,6 +36,7 @@ from torchrl.objectives import (
     ValueEstimators,
 )
 
+from torchrl_rave.envs.families import import_env_family
 from torchrl_rave.modules import EpsilonGaussianModule, WorldModelEnsemble
 from torchrl_rave.objectives import (
     EnsembleDDPGLoss,
@@ -163,6 +164,9 @@ def load_policy(
 
 
 def make_env(cfg: DictConfig, device: torch.device) -> TransformedEnv:
+    """The training (or evaluation) env: float32, step counter, episode return, reward
+    scaling. Optional families (PyBullet ids) are registered first, here as in workers."""
+    import_env_family(cfg.env.name.split(":")[-1])
     env = TransformedEnv(
         GymEnv(cfg.env.name, device=device, **(cfg.env.kwargs or {})), DoubleToFloat()
     )

@@ -8,6 +8,8 @@ from dataclasses import dataclass
 import torch
 from omegaconf import DictConfig, OmegaConf
 
+from torchrl_rave.envs.families import BULLET_IDS, import_env_family
+
 __all__ = [
     "ALGORITHMS",
     "COMPILE_MODES",
@@ -100,11 +102,15 @@ def check_config(cfg: DictConfig) -> Algorithm:
             raise ValueError(
                 f"config key env.name={cfg.env.name!r}: cannot import {module!r}: {e}"
             ) from e
+    try:
+        import_env_family(env_id)
+    except ImportError as err:
+        raise ValueError(f"config key env.name={cfg.env.name!r}: {err}") from None
     if env_id not in gym.registry:
         mujoco = sorted(k for k in gym.registry if k.endswith("-v5"))
         raise ValueError(
             f"config key env.name={cfg.env.name!r} is not a registered gymnasium id; "
-            f"MuJoCo ids: {mujoco}"
+            f"MuJoCo ids: {mujoco}; PyBullet ids (the bullet extra): {list(BULLET_IDS)}"
         )
     positive = [
         "collector.total_frames",

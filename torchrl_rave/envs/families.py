@@ -1,0 +1,44 @@
+"""Optional environment families: the gymnasium ids a package registers when imported.
+
+The Roboschool tasks of the paper live on as the PyBullet ports of
+``pybullet-envs-gymnasium`` (the ``bullet`` extra). Their ids are registered only once the
+package is imported; :func:`import_env_family` does that for an id of the family, in the
+learner and in every collector worker that builds the env.
+"""
+
+from __future__ import annotations
+
+import importlib
+
+__all__ = ["BULLET_IDS", "import_env_family"]
+
+# The paper's Roboschool tasks, as PyBullet ports (pybullet-envs-gymnasium 0.6.0)
+BULLET_IDS = (
+    "HopperBulletEnv-v0",
+    "Walker2DBulletEnv-v0",
+    "HalfCheetahBulletEnv-v0",
+    "AntBulletEnv-v0",
+    "HumanoidBulletEnv-v0",
+    "HumanoidFlagrunBulletEnv-v0",
+    "HumanoidFlagrunHarderBulletEnv-v0",
+)
+# id suffix -> (module that registers the family, extra that installs it)
+_FAMILIES = {"BulletEnv-v0": ("pybullet_envs_gymnasium", "bullet")}
+
+
+def import_env_family(env_id: str) -> None:
+    """Imports the package that registers ``env_id`` when it belongs to an optional family
+    (ids ending in ``BulletEnv-v0``); a missing package is named with the extra to install.
+
+    Examples:
+        >>> import_env_family("Hopper-v5")  # MuJoCo ids need nothing
+    """
+    for suffix, (module, extra) in _FAMILIES.items():
+        if env_id.endswith(suffix):
+            try:
+                importlib.import_module(module)
+            except ImportError as err:
+                raise ImportError(
+                    f"{env_id!r} is registered by the {module!r} package, which is not "
+                    f"installed: pip install 'torchrl-rave[{extra}]'"
+                ) from err
