@@ -73,7 +73,11 @@ def test_compiled_run_trains(monkeypatch, tmp_path):
     env = make_env(rave, torch.device("cpu"))
     make_agent(rave, env)  # compiling happens at the first call: nothing runs here
     # compile.mode's own inductor options, plus fallback_random
-    mode_options = {"max_autotune": True, "triton.cudagraphs": True, "coordinate_descent_tuning": True}
+    mode_options = {
+        "max_autotune": True,
+        "triton.cudagraphs": True,
+        "coordinate_descent_tuning": True,
+    }
     assert compiled == [
         ("_loss_total_eager", {"options": {**mode_options, "fallback_random": True}})
     ]

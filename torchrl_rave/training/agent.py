@@ -198,7 +198,9 @@ def make_actor(cfg: DictConfig, env, algo: Algorithm):
     spec = env.action_spec
     S, A = env.observation_spec["observation"].shape[-1], spec.shape[-1]
     if algo.loss == "ppo":
-        net = nn.Sequential(_mlp(cfg, S, A, cfg.network.actor_cells), AddStateIndependentNormalScale(A))
+        net = nn.Sequential(
+            _mlp(cfg, S, A, cfg.network.actor_cells), AddStateIndependentNormalScale(A)
+        )
         actor = ProbabilisticActor(
             TensorDictModule(net, in_keys=["observation"], out_keys=["loc", "scale"]),
             in_keys=["loc", "scale"],
