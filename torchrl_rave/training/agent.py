@@ -197,29 +197,21 @@ def make_actor(cfg: DictConfig, env, algo: Algorithm):
     """
     spec = env.action_spec
     S, A = env.observation_spec["observation"].shape[-1], spec.shape[-1]
-    if algo.loss == "ppo":
-        net = nn.Sequential(
-            _mlp(cfg, S, A, cfg.network.actor_cells), AddStateIndependentNormalScale(A)
-        )
+    if algo.loss in ("sac", "ppo"):
+        if algo.loss == "sac":  # scale from the network
+            head = [_mlp(cfg, S, 2 * A, cfg.network.actor_cells), NormalParamExtractor()]
+        else:  # a learned scale that does not depend on the state
+            head = [_mlp(cfg, S, A, cfg.network.actor_cells), AddStateIndependentNormalScale(A)]
         actor = ProbabilisticActor(
-            TensorDictModule(net, in_keys=["observation"], out_keys=["loc", "scale"]),
+            TensorDictModule(
+                nn.Sequential(*head), in_keys=["observation"], out_keys=["loc", "scale"]
+            ),
             in_keys=["loc", "scale"],
             spec=spec,
             distribution_class=TanhNormal,
             distribution_kwargs={"low": spec.space.low, "high": spec.space.high},
             default_interaction_type=ExplorationType.RANDOM,
-            return_log_prob=True,
-        )
-        return actor, actor
-    if algo.loss == "sac":
-        net = nn.Sequential(_mlp(cfg, S, 2 * A, cfg.network.actor_cells), NormalParamExtractor())
-        actor = ProbabilisticActor(
-            TensorDictModule(net, in_keys=["observation"], out_keys=["loc", "scale"]),
-            in_keys=["loc", "scale"],
-            spec=spec,
-            distribution_class=TanhNormal,
-            distribution_kwargs={"low": spec.space.low, "high": spec.space.high},
-            default_interaction_type=ExplorationType.RANDOM,
+            return_log_prob=algo.loss == "ppo",  # PPO's ratio needs the collecting policy's
         )
         return actor, actor
     actor = TensorDictSequential(
