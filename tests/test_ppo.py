@@ -88,12 +88,11 @@ def test_ppo_stops_at_a_signal_and_resumes_where_it_stopped(monkeypatch, tmp_pat
         ("ppo.epochs=0", "ppo.epochs=0 is invalid"),
         ("ppo.lr_schedule=cosine", "ppo.lr_schedule='cosine'.*one of \\['linear', 'constant'\\]"),
         ("ppo.max_grad_norm=-1", "ppo.max_grad_norm=-1"),
-        ("+logger.q_points={up: [[0, 0, 0, 0], [0]]}", "logger.q_points=.*no Q\\(s, a\\)"),
+        ("logger.q_points={up: [[0, 0, 0, 0], [0]]}", "logger.q_points=.*no Q\\(s, a\\)"),
         ("compile.enabled=true", "compile.enabled=True.*false with algorithm=ppo"),
     ],
 )
 def test_bad_ppo_settings_are_named_before_training(override, message, tmp_path):
-    override = override.lstrip("+")
     with pytest.raises(ValueError, match=message):
         rave_mujoco.train(make_cfg(*PPO, override), str(tmp_path))
     assert not (tmp_path / "checkpoints").exists()
