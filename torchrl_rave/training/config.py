@@ -8,7 +8,7 @@ from dataclasses import dataclass
 import torch
 from omegaconf import DictConfig, OmegaConf
 
-from torchrl_rave.envs.families import BULLET_IDS, import_env_family
+from torchrl_rave.envs.families import BULLET_IDS, OSIM_IDS, import_env_family
 
 __all__ = [
     "ALGORITHMS",
@@ -110,7 +110,8 @@ def check_config(cfg: DictConfig) -> Algorithm:
         mujoco = sorted(k for k in gym.registry if k.endswith("-v5"))
         raise ValueError(
             f"config key env.name={cfg.env.name!r} is not a registered gymnasium id; "
-            f"MuJoCo ids: {mujoco}; PyBullet ids (the bullet extra): {list(BULLET_IDS)}"
+            f"MuJoCo ids: {mujoco}; PyBullet ids (the bullet extra): {list(BULLET_IDS)}; "
+            f"OpenSim ids (the osim extra): {list(OSIM_IDS)}"
         )
     positive = [
         "collector.total_frames",
