@@ -1,0 +1,89 @@
+"""Simulation cost of ``LearnToRun-v0`` (OpenSim 4.6) per 0.01 s step, by integrator accuracy.
+
+    python benchmarks/learn_to_run_step.py                       # 5e-5 1e-3 5e-3, 3 episodes
+    python benchmarks/learn_to_run_step.py --accuracy 1e-3 --episodes 10
+
+For each ``--accuracy`` it runs ``--episodes`` episodes (seeds 0, 1, ...) of two fixed
+excitation policies on the raw gymnasium env, one process, one thread:
+
+- ``random``: uniform excitations in [0, 1] (seeded), what a fresh learner sends;
+- ``zero``: no excitation; the runner folds and falls, the stiff foot contact at its worst.
+
+It reports seconds per step over the whole episodes, the same over the first 50 steps of
+each (standing, before the fall's contact), the episode lengths and returns. The returns
+show how much the tolerance changes the dynamics; the cost shows what it buys. Episodes
+end at a fall (pelvis below 0.65 m), which these policies reach in 1-2 s.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from pathlib import Path
+
+import gymnasium as gym
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def run_episode(env, policy: str, seed: int) -> dict:
+    rng = np.random.default_rng(seed)
+    env.reset(seed=seed)
+    times, total, terminated, truncated = [], 0.0, False, False
+    while not (terminated or truncated):
+        action = rng.uniform(0.0, 1.0, 18) if policy == "random" else np.zeros(18)
+        start = time.perf_counter()
+        _, reward, terminated, truncated, _ = env.step(action)
+        times.append(time.perf_counter() - start)
+        total += reward
+    return {"steps": len(times), "seconds": sum(times), "first50": sum(times[:50]), "return": total}
+
+
+def main(argv=None) -> list[dict]:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--accuracy", nargs="+", type=float, default=[5e-5, 1e-3, 5e-3])
+    parser.add_argument(
+        "--policies", nargs="+", choices=["random", "zero"], default=["random", "zero"]
+    )
+    parser.add_argument("--episodes", type=int, default=3)
+    parser.add_argument("--json", default=str(ROOT / "benchmarks" / "learn_to_run_step.json"))
+    args = parser.parse_args(argv)
+    import torch
+
+    torch.set_num_threads(1)
+    import torchrl_rave.envs.learn_to_run  # noqa: F401  registers LearnToRun-v0
+
+    rows = []
+    for accuracy in args.accuracy:
+        env = gym.make("LearnToRun-v0", integrator_accuracy=accuracy)
+        for policy in args.policies:
+            episodes = [run_episode(env, policy, seed) for seed in range(args.episodes)]
+            steps = sum(e["steps"] for e in episodes)
+            row = {
+                "accuracy": accuracy,
+                "policy": policy,
+                "episodes": args.episodes,
+                "ms_per_step": 1e3 * sum(e["seconds"] for e in episodes) / steps,
+                "ms_per_step_first50": 1e3
+                * sum(e["first50"] for e in episodes)
+                / (50 * len(episodes)),
+                "lengths": [e["steps"] for e in episodes],
+                "returns": [round(e["return"], 3) for e in episodes],
+            }
+            rows.append(row)
+            print(
+                f"accuracy {accuracy:g} {policy:6s}: {row['ms_per_step']:6.1f} ms/step "
+                f"({row['ms_per_step_first50']:5.1f} over the first 50), lengths "
+                f"{row['lengths']}, returns {row['returns']}",
+                flush=True,
+            )
+        env.close()
+    if args.json:
+        Path(args.json).write_text(json.dumps(rows, indent=1) + "\n")
+    return rows
+
+
+if __name__ == "__main__":
+    main()
