@@ -10,7 +10,10 @@ Tests marked ``slow`` are moved to the front of the collection, so a worker star
 them at once and the other workers share out the rest meanwhile.
 """
 
+import importlib
 import os
+
+import pytest
 
 
 def pytest_configure(config):
@@ -24,3 +27,20 @@ def pytest_configure(config):
 
 def pytest_collection_modifyitems(config, items):
     items.sort(key=lambda item: item.get_closest_marker("slow") is None)  # stable: slow first
+
+
+@pytest.fixture
+def hide_modules(monkeypatch):
+    """``hide_modules(*names)``: from then on ``importlib.import_module`` raises
+    ImportError for those names, as if their package were not installed."""
+    real = importlib.import_module
+
+    def hide(*names: str) -> None:
+        def import_module(name, *args):
+            if name in names:
+                raise ImportError(f"No module named {name!r}")
+            return real(name, *args)
+
+        monkeypatch.setattr(importlib, "import_module", import_module)
+
+    return hide

@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-import importlib
-
 import numpy as np
 import pytest
 import rave_mujoco
@@ -50,15 +48,8 @@ def test_a_misspelt_id_lists_the_bullet_ids_too(tmp_path):
         rave_mujoco.train(make_cfg(*TINY, "env.name=HoperBulletEnv-v1"), str(tmp_path))
 
 
-def test_a_bullet_id_without_the_package_names_the_extra(monkeypatch, tmp_path):
-    real = importlib.import_module
-
-    def without_bullet(name, *args):
-        if name == "pybullet_envs_gymnasium":
-            raise ImportError("No module named 'pybullet_envs_gymnasium'")
-        return real(name, *args)
-
-    monkeypatch.setattr(importlib, "import_module", without_bullet)
+def test_a_bullet_id_without_the_package_names_the_extra(hide_modules, tmp_path):
+    hide_modules("pybullet_envs_gymnasium")
     with pytest.raises(ImportError, match=r"pip install 'torchrl-rave\[bullet\]'"):
         import_env_family("Walker2DBulletEnv-v0")
     cfg = make_cfg(*TINY, "env.name=Walker2DBulletEnv-v0")

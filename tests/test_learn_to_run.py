@@ -3,8 +3,6 @@ recipe on it."""
 
 from __future__ import annotations
 
-import importlib
-
 import gymnasium as gym
 import numpy as np
 import pytest
@@ -142,18 +140,11 @@ def test_every_algorithm_trains_on_learn_to_run(algorithm, tmp_path):
     assert results["eval/return"] > 0 and results["eval/falling_rate"] in (0.0, 1.0)
 
 
-def test_the_id_is_listed_and_its_extra_named(monkeypatch, tmp_path):
+def test_the_id_is_listed_and_its_extra_named(hide_modules, tmp_path):
     assert OSIM_IDS == ("LearnToRun-v0",)
     with pytest.raises(ValueError, match="(?s)not a registered gymnasium id.*LearnToRun-v0"):
         rave_mujoco.train(make_cfg(*TINY, "env.name=LearnToRun-v1"), str(tmp_path))
-    real = importlib.import_module
-
-    def without_opensim(name, *args):
-        if name == "torchrl_rave.envs.learn_to_run":
-            raise ImportError("No module named 'opensim'")
-        return real(name, *args)
-
-    monkeypatch.setattr(importlib, "import_module", without_opensim)
+    hide_modules("torchrl_rave.envs.learn_to_run")
     with pytest.raises(ImportError, match=r"'opensim'.*pip install 'torchrl-rave\[osim\]'"):
         import_env_family("LearnToRun-v0")
 
