@@ -9,7 +9,8 @@ Each positional argument is ``LABEL=PATTERN``: the run directories matching the 
 ``rave_mujoco.py`` writes (``<run>/<exp_name>/scalars/<metric>.csv``). Curves are drawn on
 the steps every seed of a group has logged; the shaded band is ± one standard deviation
 over seeds. The table gives, at each ``--at`` frame count, the mean ± std over seeds of the
-last value logged at or before it.
+last value logged at or before it. ``--max-frames`` cuts every curve at that frame count, to
+put longer runs beside shorter ones at the shorter budget.
 """
 
 from __future__ import annotations
@@ -26,6 +27,14 @@ def value_at(steps: np.ndarray, values: np.ndarray, frame: int) -> np.ndarray:
     """Per seed: the last value logged at or before ``frame`` (NaN if none)."""
     idx = np.searchsorted(steps, frame, side="right") - 1
     return values[:, idx] if idx >= 0 else np.full(values.shape[0], np.nan)
+
+
+def cut(steps: np.ndarray, values: np.ndarray, max_frames: int) -> tuple[np.ndarray, np.ndarray]:
+    """The steps at or below ``max_frames``, and the values there."""
+    keep = steps <= max_frames
+    if not keep.any():
+        raise ValueError(f"--max-frames {max_frames}: no step is logged at or before it")
+    return steps[keep], values[:, keep]
 
 
 def table(data: dict, at: list[int], metric: str) -> str:
@@ -94,8 +103,13 @@ def main(argv: list[str] | None = None) -> str:
     parser.add_argument("--at", nargs="*", type=int, default=[], help="frame counts for the table")
     parser.add_argument("--out", type=Path, default=Path("curves.png"), help="PNG to write")
     parser.add_argument("--title", default=None)
+    parser.add_argument("--max-frames", type=int, default=None, help="cut the curves here")
     args = parser.parse_args(argv)
     data = curves(parse_groups(args.groups), args.metric)
+    if args.max_frames is not None:
+        data = {
+            label: cut(steps, values, args.max_frames) for label, (steps, values) in data.items()
+        }
     at = args.at or [max(int(s[-1]) for s, _ in data.values())]
     plot(data, args.metric, args.out, args.title)
     text = table(data, at, args.metric)

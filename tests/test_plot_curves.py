@@ -40,6 +40,21 @@ class TestPlotCurves:
         assert "| ddpg | 1 | 2.0 ± 0.0 | 2.0 ± 0.0 |" in text
         assert out.read_bytes()[:4] == b"\x89PNG"
 
+    def test_max_frames_cuts_longer_runs(self, tmp_path, capsys):
+        fake_run(tmp_path / "long", "rave", [(100, 1.0), (200, 3.0), (300, 50.0)])
+        fake_run(tmp_path / "short", "ppo", [(100, 0.0), (200, 2.0)])
+        groups = [
+            f"rave={tmp_path}/long",
+            f"ppo={tmp_path}/short",
+            "--out",
+            str(tmp_path / "c.png"),
+        ]
+        # without --at the table is at the last step logged, which the cut makes 200
+        text = plot_curves.main([*groups, "--max-frames", "250"])
+        assert "at 200 |" in text and "| rave | 1 | 3.0 ± 0.0 |" in text
+        with pytest.raises(ValueError, match="--max-frames 50: no step"):
+            plot_curves.main([*groups, "--max-frames", "50"])
+
     def test_curves_use_shared_steps_and_resumed_duplicates(self, tmp_path):
         fake_run(tmp_path / "s0", "x", [(100, 1.0), (200, 2.0), (300, 3.0)])
         # a resumed run logged step 200 twice; the later value counts; step 300 missing
