@@ -274,9 +274,14 @@ def guarded_batches(
             if cfg.collector.backend == "direct":
                 raise
             where = stop_run(collector, save_checkpoint)
+            traceback_at = (
+                " (a worker that raised printed its traceback to stderr)"
+                if cfg.collector.backend == "process"
+                else ""
+            )
             raise CollectorFailure(
                 f"a {cfg.collector.backend} collector worker running {cfg.env.name} failed "
-                f"after frame {frames()}: {type(err).__name__}: {err}. The run stopped; "
-                f"{where}: resume with resume={run_dir}"
+                f"after frame {frames()}: {type(err).__name__}: {err}{traceback_at}. The run "
+                f"stopped; {where}: resume with resume={run_dir}"
             ) from err
         yield data
