@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import errno
 import json
+import os
 import shutil
 import subprocess
 import time
@@ -31,7 +32,7 @@ from torchrl_rave.training.checkpoint import (
     ReplayBufferAdapter,
     RunCheckpoint,
 )
-from torchrl_rave.training.collect import CollectorTimeout, NonFiniteEnvOutput
+from torchrl_rave.training.collect import CollectorTimeout, NonFiniteEnvOutput, deadline
 
 FRAMES = 500  # frames in the small test buffer
 
@@ -299,3 +300,46 @@ def test_a_hung_worker_is_stopped_within_the_timeout(backend, tmp_path):
         rave_mujoco.train(cfg, str(tmp_path))
     assert time.perf_counter() - t0 < 90
     assert RunCheckpoint(tmp_path).read("counters")["frames"] == 100
+
+
+def wait(seconds: float) -> None:
+    """Waits in short sleeps, as a collector polls its workers. (One long ``time.sleep``
+    is not woken when the alarm lands on another of pytest's threads.)"""
+    end = time.perf_counter() + seconds
+    while time.perf_counter() < end:
+        time.sleep(0.05)
+
+
+class TestDeadline:
+    """The per-batch deadline behind ``collector.timeout_s``."""
+
+    def test_a_block_past_its_deadline_raises(self):
+        t0 = time.perf_counter()
+        with pytest.raises(CollectorTimeout, match="stuck"), deadline(0.5, "stuck"):
+            wait(5)
+        # the alarm, then the grace for a SIGCONT that does not come
+        assert 0.5 + 0.9 < time.perf_counter() - t0 < 4
+
+    def test_a_stopped_process_is_not_hung(self):
+        """A run paused with SIGSTOP (as when its cores are wanted elsewhere) for longer
+        than the deadline, then continued, finishes its batch: the wait starts afresh."""
+        pid = os.getpid()
+        pauser = subprocess.Popen(
+            ["sh", "-c", f"sleep 0.3; kill -STOP {pid}; sleep 2.5; kill -CONT {pid}"]
+        )
+        t0 = time.perf_counter()
+        try:
+            with deadline(1.0, "stuck"):
+                wait(3.3)  # stopped from 0.3 s to 2.8 s; 0.5 s of waiting after
+        finally:
+            pauser.wait()
+        assert time.perf_counter() - t0 >= 3.3
+        # and a block that then waits past the renewed deadline still raises
+        pauser = subprocess.Popen(
+            ["sh", "-c", f"sleep 0.3; kill -STOP {pid}; sleep 1.5; kill -CONT {pid}"]
+        )
+        try:
+            with pytest.raises(CollectorTimeout), deadline(1.0, "stuck"):
+                wait(6)
+        finally:
+            pauser.wait()

@@ -217,26 +217,47 @@ def shutdown_on_error(get_collector: Callable[[], object]) -> Iterator[None]:
         raise
 
 
+_STOP_GRACE_S = 1.0  # how long an alarm due during a stop waits for the SIGCONT
+
+
 @contextlib.contextmanager
 def deadline(seconds: float | None, message: str) -> Iterator[None]:
     """Raises :class:`CollectorTimeout` (``message``) in the block if it runs longer than
     ``seconds`` (``None``: no limit). It uses ``SIGALRM``, so it only works in the main
-    thread on POSIX; elsewhere the block runs without a limit."""
+    thread on POSIX; elsewhere the block runs without a limit.
+
+    A process that was stopped (``SIGSTOP``, ``kill -STOP``, Ctrl-Z) is not hung: on
+    ``SIGCONT`` the wait starts afresh. An alarm that fell due while the process was
+    stopped is delivered together with the ``SIGCONT``, before it, so an expiring alarm
+    first waits a short grace period for a ``SIGCONT`` before it raises."""
     usable = hasattr(signal, "setitimer") and threading.current_thread() is threading.main_thread()
     if not seconds or not usable:
         yield
         return
+    expiring = False
 
     def expire(signum, frame):
+        nonlocal expiring
+        if not expiring:
+            expiring = True
+            signal.setitimer(signal.ITIMER_REAL, _STOP_GRACE_S)
+            return
         raise CollectorTimeout(message)
 
+    def resumed(signum, frame):
+        nonlocal expiring
+        expiring = False
+        signal.setitimer(signal.ITIMER_REAL, float(seconds))
+
     previous = signal.signal(signal.SIGALRM, expire)
+    previous_cont = signal.signal(signal.SIGCONT, resumed)
     signal.setitimer(signal.ITIMER_REAL, float(seconds))
     try:
         yield
     finally:
         signal.setitimer(signal.ITIMER_REAL, 0)
         signal.signal(signal.SIGALRM, previous)
+        signal.signal(signal.SIGCONT, previous_cont)
 
 
 def guarded_batches(
