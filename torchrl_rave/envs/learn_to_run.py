@@ -66,8 +66,8 @@ SKELETON = (
     ("pelvis", "femur_r", "tibia_r", "talus_r", "calcn_r", "toes_r"),
     ("pelvis", "femur_l", "tibia_l", "talus_l", "calcn_l", "toes_l"),
 )
-OBSERVATION_SIZE = 2 * len(PELVIS_COORDINATES) + 2 * len(LEG_COORDINATES) + 4
-OBSERVATION_SIZE += 2 * len(OBSERVED_BODIES)
+# pelvis and leg coordinates with their speeds, centre of mass (x, y, vx, vy), body x, y
+OBSERVATION_SIZE = 2 * (len(PELVIS_COORDINATES) + len(LEG_COORDINATES) + 2 + len(OBSERVED_BODIES))
 
 
 def model_path() -> str:
@@ -157,10 +157,8 @@ class LearnToRunEnv(gym.Env):
             excitation.setValue(0.0)
         self._model.equilibrateMuscles(state)
         state.setTime(0.0)
-        self._manager = opensim.Manager(self._model)
-        self._manager.setIntegratorAccuracy(self.integrator_accuracy)
-        self._manager.initialize(state)
         self._state = state
+        self._restart_integrator()
         self._steps = 0
         return self._observation(), {"pelvis_height": self.pelvis_height()}
 
@@ -200,6 +198,9 @@ class LearnToRunEnv(gym.Env):
                 raise KeyError(f"no coordinate {name!r} in the model; it has {names}")
             coordinates.get(name).setValue(self._state, float(value))
         self._model.realizeVelocity(self._state)
+        self._restart_integrator()
+
+    def _restart_integrator(self) -> None:
         self._manager = opensim.Manager(self._model)
         self._manager.setIntegratorAccuracy(self.integrator_accuracy)
         self._manager.initialize(self._state)
