@@ -15,9 +15,11 @@ Measured, in this order:
 3. the paper's row: seconds for 500 batches of 512 at the paper's sizes (``preset=paper``),
    RAVE vs STEVE vs DDPG (extrapolated from ``--paper-batches`` timed batches);
 4. a scaling table: one RAVE update as N, K, H_max and the batch size grow;
-5. with ``--compile``: the recipe's ``ddpg`` and ``rave`` updates under
-   ``compile.enabled=true`` and the plain-PyTorch DDPG under ``torch.compile``, beside
-   their eager twins (compile time is printed, not timed).
+5. with ``--compile [MODE]``: the recipe's ``ddpg`` and ``rave`` updates under
+   ``compile.enabled=true`` (and ``compile.mode=MODE``, e.g. ``reduce-overhead`` for CUDA
+   graphs) and the plain-PyTorch DDPG under ``torch.compile``, beside their eager twins;
+   the paper's row then also times ``ddpg``, ``steve`` and ``rave`` compiled (compile
+   time is printed, not timed).
 
 FLOPs per update are counted with ``torch.utils.flop_counter`` (matmuls forward and
 backward), so "fraction of peak" is counted FLOPs x updates/s over the matmul peak.
@@ -145,8 +147,11 @@ def measure(cases: list[Case], device: torch.device, seconds: float, rounds: int
             case.samples.append((time.perf_counter() - t) / case._n)
 
 
-def matmul_peak(device: torch.device, sizes=(1024, 2048), seconds: float = 3.0) -> float:
-    """Dense float32 matmul throughput in GFLOP/s: the best timed block over a few sizes."""
+def matmul_peak(device: torch.device, sizes=None, seconds: float = 3.0) -> float:
+    """Dense float32 matmul throughput in GFLOP/s: the best timed block over a few sizes
+    (float32 as the workloads run it: TF32 only where torch's matmul precision allows)."""
+    if sizes is None:
+        sizes = (2048, 4096, 8192) if device.type == "cuda" else (1024, 2048)
     best = 0.0
     for size in sizes:
         a = torch.randn(size, size, device=device)
@@ -302,9 +307,15 @@ def stock_ddpg_update(cfg, device):
 
 
 # ----------------------------------------------------------------------- sections
-def section_default(device, seconds, peak, compiled=False) -> dict:
-    """All workloads at the recipe's default (CPU) sizes; with ``compiled``, also the
-    recipe's updates under ``compile.enabled=true`` and plain DDPG under ``torch.compile``."""
+def compile_overrides(mode: str) -> list[str]:
+    """The recipe's overrides for ``--compile MODE`` (``default``: torch.compile's own)."""
+    return ["compile.enabled=true"] + ([f"compile.mode={mode}"] if mode != "default" else [])
+
+
+def section_default(device, seconds, peak, compiled: str | None = None) -> dict:
+    """All workloads at the recipe's default (CPU) sizes; with ``compiled`` (a compile
+    mode), also the recipe's updates under ``compile.enabled=true`` and plain DDPG under
+    ``torch.compile``."""
     cfg = recipe_config([])
     data = batches(cfg.replay_buffer.batch_size, device)
     cases = [
@@ -320,10 +331,12 @@ def section_default(device, seconds, peak, compiled=False) -> dict:
         case.count_flops()
     if compiled:
         eager = {case.name: case for case in cases}
-        twins = [Case("plain DDPG compiled", torch.compile(plain_ddpg_update(cfg, device)), data)]
+        mode = None if compiled == "default" else compiled
+        plain = torch.compile(plain_ddpg_update(cfg, device), mode=mode)
+        twins = [Case("plain DDPG compiled", plain, data)]
         twins[0].flops = eager["plain PyTorch DDPG"].flops
         for algo in ("ddpg", "rave"):
-            step = recipe_update(algo, ["compile.enabled=true"], device)[0]
+            step = recipe_update(algo, compile_overrides(compiled), device)[0]
             twins.append(Case(f"ours compiled: {algo}", step, data))
             twins[-1].flops = eager[f"ours: {algo}"].flops  # the same arithmetic
         started = time.perf_counter()
@@ -374,8 +387,9 @@ def section_default(device, seconds, peak, compiled=False) -> dict:
     return {"sizes": sizes, "rows": rows, "ratios": ratios}
 
 
-def section_paper(device, batches_timed: int, peak: float) -> dict:
-    """Seconds for 500 batches of 512 at the paper's sizes (extrapolated when timing fewer)."""
+def section_paper(device, batches_timed: int, peak: float, compiled: str | None = None) -> dict:
+    """Seconds for 500 batches of 512 at the paper's sizes (extrapolated when timing fewer);
+    with ``compiled`` (a compile mode), the recipe's updates compiled as well."""
     overrides = ["preset=paper"]
     cfg = recipe_config(overrides)
     data = batches(cfg.replay_buffer.batch_size, device, count=4)
@@ -386,9 +400,20 @@ def section_paper(device, batches_timed: int, peak: float) -> dict:
     }
     for algo in ("ddpg", "steve", "rave"):
         workloads[algo] = recipe_update(algo, overrides, device)[0]
+    if compiled:
+        for algo in ("ddpg", "steve", "rave"):
+            step = recipe_update(algo, overrides + compile_overrides(compiled), device)[0]
+            workloads[f"{algo} compiled"] = step
+    flops = {}
     for algo, step in workloads.items():
         case = Case(algo, step, data)
-        case.count_flops()  # doubles as the warm-up
+        if algo.endswith(" compiled"):  # the same arithmetic as its eager twin
+            for _ in range(3):  # compiles, then records the CUDA graphs
+                case.step()
+            case.flops = flops[algo.removesuffix(" compiled")]
+        else:
+            case.count_flops()  # doubles as the warm-up
+            flops[algo] = case.flops
         sync(device)
         t = time.perf_counter()
         done = 0
@@ -408,9 +433,16 @@ def section_paper(device, batches_timed: int, peak: float) -> dict:
             "fraction_of_peak": case.flops / per_batch / 1e9 / peak,
         }
     out["rave / steve"] = out["rave"]["s_per_batch"] / out["steve"]["s_per_batch"]
+    if compiled:
+        out["rave / steve (compiled)"] = (
+            out["rave compiled"]["s_per_batch"] / out["steve compiled"]["s_per_batch"]
+        )
     out["rave / steve (FLOPs)"] = out["rave"]["gflop_per_update"] / out["steve"]["gflop_per_update"]
     out["batches_timed"] = batches_timed
     return out
+
+
+PAPER_ROWS = ("rave", "steve", "ddpg", "plain PyTorch DDPG", "TorchRL DDPGLoss")
 
 
 def section_scaling(device, seconds) -> list[dict]:
@@ -477,7 +509,9 @@ def print_report(result: dict) -> None:
             f"\npaper sizes, 500 batches of 512 (extrapolated from >= {p['batches_timed']} batches"
             f" and >= 1 s each; DDPG rows use the paper's 4 x 128 actor and critic):"
         )
-        for algo in ("rave", "steve", "ddpg", "plain PyTorch DDPG", "TorchRL DDPGLoss"):
+        for algo in PAPER_ROWS + tuple(f"{a} compiled" for a in ("rave", "steve", "ddpg")):
+            if algo not in p:
+                continue
             r = p[algo]
             print(
                 f"  {algo:<20}{r['s_per_500_batches']:9.1f} s   {r['gflop_per_update']:7.2f} GFLOP"
@@ -488,7 +522,7 @@ def print_report(result: dict) -> None:
         )
         print(f"  rave / steve FLOPs per update {p['rave / steve (FLOPs)']:.2f}")
         print(
-            f"  rave / steve {p['rave / steve']:.2f}  (paper, on its GPU: 13.20 s / 10.67 s = 1.24)"
+            f"  rave / steve {p['rave / steve']:.2f}  (paper, on its GPU: 13.20 s / 10.62 s = 1.24)"
         )
     if "scaling" in result:
         print("\nRAVE update as one knob grows (default N=4, K=4, H_max=3, batch=128):")
@@ -517,8 +551,12 @@ def main(argv=None) -> dict:
     parser.add_argument("--no-scaling", action="store_true", help="skip the scaling table")
     parser.add_argument(
         "--compile",
-        action="store_true",
-        help="also time the recipe's compile.enabled=true updates and a compiled plain DDPG",
+        nargs="?",
+        const="default",
+        default=None,
+        metavar="MODE",
+        help="also time the recipe's compile.enabled=true updates and a compiled plain DDPG; "
+        "MODE is compile.mode (e.g. reduce-overhead; default: torch.compile's own)",
     )
     parser.add_argument(
         "--threads", type=int, default=None, help="torch threads (default: torch's own)"
@@ -545,7 +583,7 @@ def main(argv=None) -> dict:
         "default": section_default(device, args.seconds, peak, compiled=args.compile),
     }
     if args.paper_batches > 0:
-        result["paper"] = section_paper(device, args.paper_batches, peak)
+        result["paper"] = section_paper(device, args.paper_batches, peak, compiled=args.compile)
     if not args.no_scaling:
         result["scaling"] = section_scaling(device, args.seconds / 3)
     # the machine's clock can drift over a run: measure the peak again and keep the larger
@@ -556,8 +594,8 @@ def main(argv=None) -> dict:
         result["matmul_peak_gflops"] = peak
         for row in result["default"]["rows"].values():
             row["fraction_of_peak"] *= scale
-        for algo in ("rave", "steve", "ddpg", "plain PyTorch DDPG", "TorchRL DDPGLoss"):
-            if "paper" in result:
+        for algo in result.get("paper", {}):
+            if isinstance(result["paper"][algo], dict):
                 result["paper"][algo]["fraction_of_peak"] *= scale
     result["wall_s"] = time.perf_counter() - started
     print_report(result)
