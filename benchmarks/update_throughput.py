@@ -12,6 +12,8 @@ Measured, in this order:
    a plain-PyTorch DDPG, TorchRL's stock ``DDPGLoss``, and the recipe's ``ddpg``, ``steve``
    and ``rave`` (world-model step + K critics + actor + soft target update, exactly the
    recipe's ``WorldModelTrainer.update`` / ``agent_update``); and the value target alone;
+   malloc is set up as the recipe sets it (``keep_freed_memory``; ``--default-malloc``
+   leaves it alone);
 3. the paper's row: seconds for 500 batches of 512 at the paper's sizes (``preset=paper``),
    RAVE vs STEVE vs DDPG (extrapolated from ``--paper-batches`` timed batches);
 4. a scaling table: one RAVE update as N, K, H_max and the batch size grow;
@@ -50,6 +52,7 @@ from torchrl.objectives import DDPGLoss, SoftUpdate, ValueEstimators
 
 from torchrl_rave.training.agent import make_agent
 from torchrl_rave.training.config import check_config
+from torchrl_rave.training.memory import keep_freed_memory
 from torchrl_rave.training.update import make_agent_step
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -483,7 +486,7 @@ def section_scaling(device, seconds) -> list[dict]:
 
 # --------------------------------------------------------------------------- report
 def print_report(result: dict) -> None:
-    print(f"\ndevice: {result['device']}  threads: {result['threads']}")
+    print(f"\ndevice: {result['device']}  threads: {result['threads']}  malloc: {result['malloc']}")
     print(
         f"dense float32 matmul peak: {result['matmul_peak_gflops']:.1f} GFLOP/s "
         "(best of the measurements at the start and the end)\n"
@@ -562,6 +565,12 @@ def main(argv=None) -> dict:
         "--threads", type=int, default=None, help="torch threads (default: torch's own)"
     )
     parser.add_argument(
+        "--default-malloc",
+        action="store_true",
+        help="leave glibc's malloc thresholds alone (default: keep_freed_memory(), as the "
+        "recipe runs; see malloc_reuse.py)",
+    )
+    parser.add_argument(
         "--json",
         default=str(ROOT / "benchmarks" / "update_throughput.json"),
         help="where to write the results",
@@ -569,6 +578,7 @@ def main(argv=None) -> dict:
     args = parser.parse_args(argv)
     if args.threads:
         torch.set_num_threads(args.threads)
+    malloc_kept = False if args.default_malloc else keep_freed_memory()
     device = torch.device(args.device)
     if device.type == "cuda" and not torch.cuda.is_available():
         parser.error("--device cuda but torch.cuda.is_available() is False")
@@ -578,6 +588,7 @@ def main(argv=None) -> dict:
     result = {
         "device": f"{device.type}: {name or platform.machine()}, {os.cpu_count()} cores",
         "threads": torch.get_num_threads(),
+        "malloc": "keep_freed_memory()" if malloc_kept else "the C library's defaults",
         "torch": torch.__version__,
         "matmul_peak_gflops": peak,
         "default": section_default(device, args.seconds, peak, compiled=args.compile),

@@ -44,6 +44,7 @@ from torchrl_rave.training.collect import (
     stop_run,
 )
 from torchrl_rave.training.config import (
+    apply_process_settings,
     check_config,
     check_resumable,
     replay_buffer_size,
@@ -75,8 +76,7 @@ def train(cfg: DictConfig, run_dir: str) -> dict[str, float]:
     else:
         cfg.replay_buffer.size = replay_buffer_size(cfg)  # fixed once, so resuming keeps it
     device = torch.device(cfg.collector.device or ("cuda" if torch.cuda.is_available() else "cpu"))
-    if cfg.threads:
-        torch.set_num_threads(cfg.threads)
+    apply_process_settings(cfg)
     torch.manual_seed(cfg.env.seed)
 
     # Environments, agent, replay buffer

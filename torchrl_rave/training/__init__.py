@@ -9,6 +9,8 @@
 - :mod:`~torchrl_rave.training.evaluate`: evaluation episodes and the logger.
 - :mod:`~torchrl_rave.training.checkpoint`: ``torchrl.checkpoint`` run checkpoints.
 - :mod:`~torchrl_rave.training.runs`: the run-directory reader and the grid launcher.
+- :mod:`~torchrl_rave.training.memory`: :func:`keep_freed_memory`, malloc reuse for CPU
+  training processes (opt-in: it changes the whole process).
 
 These take the recipe's hydra config (``recipes/config.yaml``).
 """
@@ -16,6 +18,7 @@ These take the recipe's hydra config (``recipes/config.yaml``).
 from torchrl_rave.training.agent import Agent, load_agent, load_policy, make_agent
 from torchrl_rave.training.checkpoint import RunCheckpoint
 from torchrl_rave.training.config import ALGORITHMS, check_config
+from torchrl_rave.training.memory import keep_freed_memory
 from torchrl_rave.training.runs import Cell, launch_grid, read_scalar
 
 __all__ = [
@@ -24,6 +27,7 @@ __all__ = [
     "Cell",
     "RunCheckpoint",
     "check_config",
+    "keep_freed_memory",
     "launch_grid",
     "load_agent",
     "load_policy",

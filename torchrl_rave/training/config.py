@@ -9,6 +9,7 @@ import torch
 from omegaconf import DictConfig, OmegaConf
 
 from torchrl_rave.envs.families import BULLET_IDS, OSIM_IDS, import_env_family
+from torchrl_rave.training import memory
 
 __all__ = [
     "ALGORITHMS",
@@ -90,6 +91,12 @@ def check_config(cfg: DictConfig) -> Algorithm:
         "threads",
         cfg.threads,
         "null or an integer >= 1",
+    )
+    _require(
+        isinstance(cfg.keep_freed_memory, bool),
+        "keep_freed_memory",
+        cfg.keep_freed_memory,
+        "true or false",
     )
     env_id = str(cfg.env.name)
     if ":" in env_id:  # gymnasium's "module:EnvId": importing the module registers the id
@@ -338,6 +345,15 @@ def check_ray_fits(cfg: DictConfig, total: dict, where: str) -> None:
             f"collector.num_workers x {amount:g} = {workers * amount:g} {name} <= the {have:g} "
             f"{name} of {where}; lower it (fractions are fine), use fewer workers or add nodes",
         )
+
+
+def apply_process_settings(cfg: DictConfig) -> None:
+    """The learner process's own settings: ``threads`` (torch's thread count) and
+    ``keep_freed_memory`` (:func:`~torchrl_rave.training.memory.keep_freed_memory`)."""
+    if cfg.threads:
+        torch.set_num_threads(cfg.threads)
+    if cfg.keep_freed_memory:
+        memory.keep_freed_memory()
 
 
 def replay_buffer_size(cfg: DictConfig) -> int:
