@@ -118,8 +118,7 @@ def main(argv=None) -> dict:
         }
         for case in CASES
     }
-    hashes = {kind: [run["hashes"] for run in runs[kind]] for kind in runs}
-    all_hashes = hashes["plain"] + hashes["kept"]
+    hashes = [run["hashes"] for kind in runs for run in runs[kind]]
     result = {
         "device": f"cpu: {platform.processor() or platform.machine()}, {os.cpu_count()} cores",
         "malloc_setting_applied": all(run["malloc_setting_applied"] for run in runs["kept"]),
@@ -129,7 +128,7 @@ def main(argv=None) -> dict:
             case: rows[case]["kept"]["ms_per_update"] / rows[case]["plain"]["ms_per_update"]
             for case in CASES
         },
-        "identical_parameters": all(h == all_hashes[0] for h in all_hashes),
+        "identical_parameters": all(h == hashes[0] for h in hashes),
         "wall_s": time.perf_counter() - started,
     }
     print(f"\n{result['device']}; setting applied: {result['malloc_setting_applied']}")
