@@ -20,6 +20,8 @@ import torch
 from torch.profiler import ProfilerActivity, profile
 from update_throughput import batches, recipe_update
 
+from torchrl_rave.training.memory import keep_freed_memory
+
 
 def main(argv: list[str] | None = None) -> str:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
@@ -28,7 +30,15 @@ def main(argv: list[str] | None = None) -> str:
     parser.add_argument("--steps", type=int, default=20, help="updates profiled")
     parser.add_argument("--target-only", action="store_true", help="the value target alone")
     parser.add_argument("--rows", type=int, default=15, help="rows per table")
+    parser.add_argument(
+        "--default-malloc",
+        action="store_true",
+        help="leave glibc's malloc thresholds alone (default: keep_freed_memory(), as the "
+        "recipe and update_throughput.py run; without it the large target tensors fault "
+        "in fresh pages at every update)",
+    )
     args = parser.parse_args(argv)
+    malloc_kept = False if args.default_malloc else keep_freed_memory()
 
     torch.set_num_threads(args.threads)
     device = torch.device("cpu")
@@ -48,7 +58,8 @@ def main(argv: list[str] | None = None) -> str:
         run(args.steps)
     what = "value target" if args.target_only else "update"
     out = [
-        f"{args.algorithm} {what}, default sizes, {args.threads} thread(s): {ms:.1f} ms each",
+        f"{args.algorithm} {what}, default sizes, {args.threads} thread(s), "
+        f"{'keep_freed_memory()' if malloc_kept else 'default malloc'}: {ms:.1f} ms each",
         prof.key_averages().table(sort_by="self_cpu_time_total", row_limit=args.rows),
         prof.key_averages(group_by_input_shape=True).table(
             sort_by="self_cpu_time_total",

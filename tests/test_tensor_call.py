@@ -5,7 +5,7 @@ from __future__ import annotations
 import pytest
 import torch
 from tensordict import TensorDict
-from tensordict.nn import TensorDictModule, TensorDictSequential
+from tensordict.nn import TensorDictModule, TensorDictParams, TensorDictSequential
 from torch import nn
 from torchrl.data import Bounded
 from torchrl.modules import MLP, Actor, TanhModule, ValueOperator
@@ -149,3 +149,68 @@ class TestRefusals:
         )
         # a member-specific custom module cannot be stacked exactly
         assert TensorCall.plan(actor, stacked=True) is None
+
+
+class TestParameterSources:
+    """Leaves are read from a TensorDictParams' module dicts (see ``_leaf``); they must
+    follow every change of the TensorDict and give the same numbers as a plain one."""
+
+    def test_tensordict_params_equal_plain_tensordict(self):
+        net = critic()
+        plain = random_params(net, 3)
+        wrapped = TensorDictParams(plain.clone())
+        call = TensorCall.plan(net, stacked=True)
+        assert torch.equal(
+            call(wrapped, inputs())["state_action_value"],
+            call(plain, inputs())["state_action_value"],
+        )
+
+    def test_a_replaced_entry_is_seen(self):
+        net = critic()
+        params = TensorDictParams(random_params(net))
+        call = TensorCall.plan(net)
+        before = call(params, inputs())["state_action_value"]
+        key = ("module", "0", "weight")
+        params.set(key, torch.nn.Parameter(torch.zeros_like(params.get(key))))
+        after = call(params, inputs())["state_action_value"]
+        assert not torch.equal(before, after)
+        torch.testing.assert_close(
+            after, reference(net, params.data, inputs())["state_action_value"]
+        )
+
+    def test_a_cast_module_is_seen(self):
+        net = critic()
+        holder = nn.Module()
+        holder.params = TensorDictParams(random_params(net, 2))
+        holder.to(torch.float64)
+        x = {k: v.double() for k, v in inputs().items()}
+        out = TensorCall.plan(net, stacked=True)(holder.params, x)["state_action_value"]
+        assert out.dtype == torch.float64
+
+    def test_detach_keeps_the_numbers_and_stops_parameter_gradients(self):
+        net = critic()
+        params = TensorDictParams(random_params(net, 2))
+        action = inputs()["action"].requires_grad_()
+        call = TensorCall.plan(net, stacked=True)
+        x = {"observation": inputs()["observation"], "action": action}
+        out = call(params, x, detach=True)["state_action_value"]
+        assert torch.equal(out, call(params.data, x)["state_action_value"])
+        out.sum().backward()
+        assert action.grad is not None and action.grad.abs().sum() > 0
+        assert all(p.grad is None for p in params.values(True, True))
+
+    @pytest.mark.parametrize("per_member", [False, True])
+    def test_one_stacked_member_matches_the_module(self, per_member):
+        # K = 1 runs as plain 2-D linear calls on the squeezed member
+        net = critic()
+        params = TensorDictParams(random_params(net, 1))
+        x = inputs()
+        if per_member:
+            x = {k: v.unsqueeze(0) for k, v in x.items()}
+        out = TensorCall.plan(net, stacked=True)(params, x)["state_action_value"]
+        assert out.shape == (1, M, 1)
+        expected = reference(net, params.data[0], inputs())["state_action_value"]
+        assert torch.equal(out[0], expected)
+        out.sum().backward()
+        grads = [p.grad for p in params.values(True, True)]
+        assert all(g is not None and g.shape[0] == 1 and g.abs().sum() > 0 for g in grads)

@@ -25,7 +25,12 @@ from collections.abc import Mapping
 
 import torch
 from tensordict import TensorDict, TensorDictBase
-from tensordict.nn import TensorDictModule, TensorDictModuleBase, TensorDictSequential
+from tensordict.nn import (
+    TensorDictModule,
+    TensorDictModuleBase,
+    TensorDictParams,
+    TensorDictSequential,
+)
 from tensordict.utils import NestedKey
 from torch import nn
 from torch.nn import functional as F
@@ -83,6 +88,21 @@ def _stacked_linear(x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor | 
     if bias is None:
         return torch.bmm(x, wt)
     return torch.baddbmm(bias.unsqueeze(-2), x, wt)
+
+
+def _leaf(params: TensorDictBase, key: tuple[str, ...], flat: str) -> torch.Tensor:
+    """``params.get(key)``. A :class:`~tensordict.nn.TensorDictParams` also holds its leaves
+    in its ``nn.Module`` parameter and buffer dicts under the dotted key ``flat``, rebuilt
+    whenever an entry is set or the module is moved or cast (they are what ``parameters()``,
+    and so every optimiser, sees): one dict look-up there instead of a nested TensorDict
+    get, which costs several microseconds per leaf and dozens of leaves per update."""
+    if isinstance(params, TensorDictParams):
+        leaf = params._parameters.get(flat)
+        if leaf is None:
+            leaf = params._buffers.get(flat)
+        if leaf is not None:
+            return leaf
+    return params.get(key)
 
 
 def _shared_state(params: TensorDictBase, prefix: tuple[str, ...]) -> TensorDictBase:
@@ -148,6 +168,11 @@ class TensorCall:
             # several inputs are concatenated by TorchRL's MLP only
             several = len(module.in_keys) > 1
             if layers is not None and (not several or type(module.module) is MLP):
+                # each linear layer's parameter keys, nested and dotted (see _leaf)
+                layers = [
+                    (is_linear, layer, *(cls._param_keys(key, layer) if is_linear else ()))
+                    for key, is_linear, layer in layers
+                ]
                 return [("mlp", list(module.in_keys), module.out_keys[0], layers)]
         if type(module) is TanhModule and len(module.in_keys) == 1:
             # TorchRL's squashing onto the action box, done on the tensor (bounds are buffers)
@@ -162,9 +187,22 @@ class TensorCall:
             return None
         return [("module", prefix if has_state else None, module)]
 
+    @staticmethod
+    def _param_keys(key: tuple[str, ...], layer: nn.Linear) -> tuple:
+        names = ["weight"] + (["bias"] if layer.bias is not None else [])
+        keys = [((*key, name), ".".join((*key, name))) for name in names]
+        return keys[0], keys[1] if len(keys) > 1 else None
+
     def __call__(
-        self, params: TensorDictBase | None, inputs: Mapping[NestedKey, torch.Tensor]
+        self,
+        params: TensorDictBase | None,
+        inputs: Mapping[NestedKey, torch.Tensor],
+        *,
+        detach: bool = False,
     ) -> dict[NestedKey, torch.Tensor]:
+        """The module's outputs by key for ``inputs`` under ``params`` (``None``: the
+        module's own parameters); ``detach=True`` uses the parameters detached (gradients
+        still reach the inputs), as ``params.detach()`` would."""
         values = dict(inputs)
         for step in self.steps:
             if step[0] == "mlp":
@@ -172,7 +210,12 @@ class TensorCall:
                 xs = [values[k] for k in in_keys]
                 x = xs[0] if len(xs) == 1 else torch.cat(xs, -1)
                 fresh = False  # whether x is a linear layer's own output
-                for key, is_linear, layer in layers:
+                # One stacked member (DDPG's single critic): plain 2-D linear calls on the
+                # member's squeezed parameters, cheaper than batched matmuls with the same
+                # numbers; x gets its member dimension back at the end (an in-place
+                # activation on that view would cost autograd a CopySlices node).
+                single = False
+                for is_linear, layer, *keys in layers:
                     if not is_linear:
                         # element-wise and parameter-free: no hooks needed; in place on a
                         # linear layer's output, never on the caller's input
@@ -184,14 +227,26 @@ class TensorCall:
                     if params is None:
                         w, b = layer.weight, layer.bias
                     else:
-                        w = params.get((*key, "weight"))
-                        b = None if layer.bias is None else params.get((*key, "bias"))
+                        weight_key, bias_key = keys
+                        w = _leaf(params, *weight_key)
+                        b = None if bias_key is None else _leaf(params, *bias_key)
+                    if detach:
+                        w, b = w.detach(), None if b is None else b.detach()
+                    if w.dim() == 3 and w.shape[0] == 1:
+                        single = True
+                        x = x.squeeze(0) if x.dim() == 3 else x
+                        w, b = w.squeeze(0), None if b is None else b.squeeze(0)
                     x = F.linear(x, w, b) if w.dim() == 2 else _stacked_linear(x, w, b)
-                values[out_key] = x
+                values[out_key] = x.unsqueeze(0) if single else x
             elif step[0] == "tanh":
                 _, in_key, out_key, (module, prefix, low_name, high_name), rescale, clamp = step
                 if params is None:
                     low, high = getattr(module, low_name), getattr(module, high_name)
+                elif params.batch_dims == 0:
+                    low, high = (
+                        _leaf(params, (*prefix, n), ".".join((*prefix, n)))
+                        for n in (low_name, high_name)
+                    )
                 else:
                     sub = _shared_state(params, prefix)
                     low, high = sub.get(low_name), sub.get(high_name)
@@ -205,7 +260,8 @@ class TensorCall:
                 batch = next(iter(values.values())).shape[:-1]
                 td = TensorDict({k: values[k] for k in module.in_keys if k in values}, batch)
                 if prefix is not None and params is not None:
-                    with _shared_state(params, prefix).to_module(
+                    state = _shared_state(params, prefix)
+                    with (state.detach() if detach else state).to_module(
                         module, preserve_module_state=False
                     ):
                         td = module(td)

@@ -10,12 +10,20 @@ from tensordict.nn import TensorDictModule, TensorDictParams, dispatch
 from tensordict.utils import NestedKey
 from torchrl.objectives import LossModule, ValueEstimators
 from torchrl.objectives.utils import _cache_values, _vmap_func, distance_loss
+from torchrl.objectives.value import TD0Estimator, TD1Estimator, TDLambdaEstimator
 
-from torchrl_rave._checks import check_not_empty, check_positive_int, get_checked
+from torchrl_rave._checks import (
+    check_not_empty,
+    check_positive_int,
+    first_param_dtype,
+    get_checked,
+)
 from torchrl_rave.modules.tensor_call import PlannedCalls
 from torchrl_rave.objectives.value_expansion import ValueExpansionEstimator
 
 __all__ = ["EnsembleDDPGLoss"]
+
+_TORCHRL_TD = (TD0Estimator, TD1Estimator, TDLambdaEstimator)
 
 _PARAMS = (
     "actor_network_params",
@@ -208,25 +216,37 @@ class EnsembleDDPGLoss(LossModule):
         with params.to_module(self.actor_network, preserve_module_state=False):
             return self.actor_network(td).get(self.tensor_keys.action)
 
-    def _values(self, source, action: torch.Tensor, params) -> torch.Tensor:
-        """``[K, *B]`` values of the K critics (stacked ``params``) at ``action``."""
+    def _values(self, source, action: torch.Tensor, params, detach: bool = False) -> torch.Tensor:
+        """``[K, *B]`` values of the K critics (stacked ``params``, detached with
+        ``detach``) at ``action``."""
         keys = self.tensor_keys
         inputs = {k: action if k == keys.action else source(k) for k in self.value_network.in_keys}
         batch = action.shape[:-1]
         call = self._calls.get("critic", self.value_network, stacked=True)
         if call is not None:
             flat = {k: v.reshape(-1, v.shape[-1]) for k, v in inputs.items()}
-            q = call(params, flat)[keys.state_action_value]  # [K, M, 1]
+            q = call(params, flat, detach=detach)[keys.state_action_value]  # [K, M, 1]
             return q.reshape(q.shape[0], *batch)
+        if detach:
+            params = self._cached_detach_value_network_params
         td = TensorDict(inputs, batch_size=batch)
         td = td.expand(self.num_value_nets, *td.batch_size)
         return self._vmap_value_network(td, params).get(keys.state_action_value).squeeze(-1)
+
+    def _value_keys(self) -> list[NestedKey]:
+        keys = self.tensor_keys
+        return [
+            *self.value_network.in_keys,
+            ("next", keys.reward),
+            ("next", keys.done),
+            *[("next", k) for k in self.actor_network.in_keys],
+        ]
 
     def _check_batch(self, tensordict: TensorDictBase, keys) -> None:
         """Names an empty batch, or a missing entry or wrong dtype among ``keys``, before
         any network runs; a value-expansion estimator also checks the widths."""
         check_not_empty(tensordict, type(self).__name__)
-        dtype = next(iter(self.actor_network_params.values(True, True))).dtype
+        dtype = first_param_dtype(self.actor_network_params)
         for key in keys:
             get_checked(tensordict, key, check_finite=False, dtype=dtype)
         if isinstance(self.value_estimator, ValueExpansionEstimator):
@@ -236,25 +256,29 @@ class EnsembleDDPGLoss(LossModule):
     def loss_actor(self, tensordict: TensorDictBase) -> tuple[torch.Tensor, dict]:
         """``-mean_k Q_k(s, pi(s))``; the critics' weights are detached, so only the actor moves."""
         self._check_batch(tensordict, self.actor_network.in_keys)
+        return self._loss_actor(tensordict)
+
+    def _loss_actor(self, tensordict: TensorDictBase) -> tuple[torch.Tensor, dict]:
         weights = self._maybe_get_priority_weight(tensordict)
         action = self._actions(tensordict.get, self.actor_network_params)
-        q = self._values(tensordict.get, action, self._cached_detach_value_network_params)
+        q = self._values(tensordict.get, action, self.value_network_params, detach=True)
         loss = self._reduce_loss(-q.mean(0), tensordict=tensordict, weights=weights)
         return loss, {"state_action_value_actor": q.detach()}
 
     def loss_value(self, tensordict: TensorDictBase) -> tuple[torch.Tensor, dict]:
         """Every critic regresses onto the estimator's target; the sum over critics is reduced."""
+        self._check_batch(tensordict, self._value_keys())
+        return self._loss_value(tensordict)
+
+    def _loss_value(self, tensordict: TensorDictBase) -> tuple[torch.Tensor, dict]:
         keys = self.tensor_keys
-        self._check_batch(
-            tensordict,
-            [*self.value_network.in_keys, ("next", keys.reward), ("next", keys.done)]
-            + [("next", k) for k in self.actor_network.in_keys],
-        )
         weights = self._maybe_get_priority_weight(tensordict)
-        tensordict = tensordict.clone(False)
-        if not isinstance(self.value_estimator, ValueExpansionEstimator):
-            # TD(0)/TD(lambda) read the next state's value from the batch: the minimum over
-            # the target critics at the target policy's action (one critic: plain DDPG).
+        estimator = self.value_estimator
+        if isinstance(estimator, ValueExpansionEstimator):
+            target = estimator.value_estimate(tensordict)
+        else:
+            # TD(0)/TD(lambda) bootstrap from the next state's value: the minimum over the
+            # target critics at the target policy's action (one critic: plain DDPG).
             with torch.no_grad():
 
                 def next_entry(k):
@@ -262,11 +286,20 @@ class EnsembleDDPGLoss(LossModule):
 
                 next_action = self._actions(next_entry, self.target_actor_network_params)
                 next_q = self._values(next_entry, next_action, self.target_value_network_params)
-            tensordict.set(("next", keys.state_action_value), next_q.min(0)[0].unsqueeze(-1))
+                next_value = next_q.min(0)[0].unsqueeze(-1)
+            if isinstance(estimator, _TORCHRL_TD) and not estimator.average_rewards:
+                # TorchRL's estimators take the next value directly (and then leave the
+                # batch alone)
+                target = estimator.value_estimate(tensordict, next_value=next_value)
+            else:
+                # any other estimator reads it from (a shallow copy of) the batch
+                tensordict = tensordict.clone(False)
+                tensordict.set(("next", keys.state_action_value), next_value)
+                target = estimator.value_estimate(tensordict)
+        target = target.squeeze(-1)
         current = self._values(
             tensordict.get, tensordict.get(keys.action), self.value_network_params
         )
-        target = self.value_estimator.value_estimate(tensordict).squeeze(-1)
         loss = distance_loss(current, target.expand_as(current), loss_function=self.loss_function)
         loss = self._reduce_loss(loss.sum(0), tensordict=tensordict, weights=weights)
         with torch.no_grad():
@@ -284,8 +317,9 @@ class EnsembleDDPGLoss(LossModule):
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
         """Critic and actor losses; writes the critics' largest squared TD error under
         ``priority`` for prioritised replay."""
-        loss_value, metadata = self.loss_value(tensordict)
-        loss_actor, metadata_actor = self.loss_actor(tensordict)
+        self._check_batch(tensordict, [*self._value_keys(), *self.actor_network.in_keys])
+        loss_value, metadata = self._loss_value(tensordict)
+        loss_actor, metadata_actor = self._loss_actor(tensordict)
         tensordict.set(self.tensor_keys.priority, metadata.pop("td_error").max(0)[0])
         out = TensorDict(
             {"loss_actor": loss_actor, "loss_value": loss_value, **metadata, **metadata_actor}
