@@ -85,5 +85,5 @@ def test_profile_names_the_target_critic_rows(capsys):
         text = profile_update.main(["--steps", "2", "--rows", "40", "--target-only"])
     finally:
         torch.set_num_threads(threads)
-    assert "rave value target, default sizes, 1 thread(s):" in text
+    assert "rave value target, default sizes, 1 thread(s), keep_freed_memory():" in text
     assert "[4, 1664, 64]" in text and "aten::bmm" in text
