@@ -64,6 +64,8 @@ def test_report_from_results_alone(tmp_path, capsys):
     # rave: [10, 30] at 100 and [20, 40] at 200: mean 20 / 30, half 12.706 * 14.14 / 1.414
     assert "| Hopper-v5 | rave | 2 | 20 ± 127 | 30 ± 127 | 0.25 |" in table
     assert "| Hopper-v5 | ddpg | 1 | 7 (1 seed) | 8 (1 seed) | 1.00 |" in table
+    # the published numbers are at 100k frames: no reference column beside a 200-frame study
+    assert "reference" not in table
     assert table in capsys.readouterr().out
     for name in ("return", "falling_rate", "rave_diagnostics", "rave_model_error"):
         assert (figures / f"tiny_Hopper-v5_{name}.png").stat().st_size > 10_000
@@ -86,3 +88,18 @@ def test_run_exports_a_finished_cell_and_skips_it_next_time(tmp_path, capsys):
     assert not list(cell.rglob("checkpoint*"))
     study.main(args)
     assert "tiny: 0 cells to go" in capsys.readouterr().out
+
+
+def test_report_puts_the_100k_reference_beside_a_100k_study(tmp_path):
+    results, figures = tmp_path / "results", tmp_path / "figures"
+    for seed in (0, 1):
+        write_cell(results, "ddpg", seed, {"eval/return": [(50_000, 5 + seed), (100_000, 9)],
+                                           "eval/falling_rate": [(50_000, 1.0), (100_000, 1.0)]})  # fmt: skip
+    config = write_study(tmp_path, frames=100_000)
+    study.main(["report", "--config", str(config), "--results", str(results),
+                "--figures", str(figures)])  # fmt: skip
+    table = (figures / "tiny.md").read_text()
+    assert "| falling rate | reference at 100k (tianshou, gym v3; not ours) |" in table
+    # TianShou's DDPG on Hopper at 100k is 904 (recipes/compare.py); rave has no reference
+    assert "| Hopper-v5 | ddpg | 2 | 6 ± 6 | 9 ± 0 | 1.00 | 904 |" in table
+    assert "| Hopper-v5 | rave | 0 | n/a | n/a | n/a |  |" in table
