@@ -87,7 +87,12 @@ def plot(data: dict, metric: str, out: Path, title: str | None = None) -> None:
     series = {}
     for label, (steps, values) in data.items():
         mean, std = values.mean(0), values.std(0)
-        series[f"{label} ({values.shape[0]} seeds)"] = (steps, mean, mean - std, mean + std)
+        series[f"{label} ({values.shape[0]} seed{'s' if values.shape[0] > 1 else ''})"] = (
+            steps,
+            mean,
+            mean - std,
+            mean + std,
+        )
     band_plot(series, out, xlabel="environment frames", ylabel=metric, title=title)
 
 

@@ -186,7 +186,12 @@ def report(args) -> str:
                 + f" | {falls[:, -1].mean():.2f} |{ref}"
             )
             lo, hi = values.min(0), values.max(0)
-            curves[f"{algorithm} ({len(runs)} seeds)"] = (steps, values.mean(0), lo, hi)
+            curves[f"{algorithm} ({len(runs)} seed{'s' if len(runs) > 1 else ''})"] = (
+                steps,
+                values.mean(0),
+                lo,
+                hi,
+            )
             if algorithm == "rave":
                 diag = {m: series(runs, m) for m in ("train/alpha", "train/wm_transition_mse")}
                 diag.update(
