@@ -154,15 +154,19 @@ def report(args) -> str:
     at = [study.frames // 2, study.frames]
     # the published reference is at 100k frames: beside a shorter study it would mislead
     with_ref = study.frames >= 100_000
+    # one evaluation is 10 episodes of one policy snapshot; the evaluations of the last
+    # quarter of the budget, averaged per seed, say more about where a run has got to
+    tail_from = study.frames * 3 // 4
     lines = [
         f"Evaluation return ({study.name}): mean ± 95 % t-interval half-width over the seeds "
-        "that finished; falling rate pooled over seeds at the last evaluation.",
+        "that finished; the last-quarter column first averages each seed's evaluations after "
+        f"{tail_from:,} frames; falling rate pooled over seeds at the last evaluation.",
         "",
         "| task | algorithm | seeds | "
         + " | ".join(f"return at {f:,}" for f in at)
-        + " | falling rate |"
+        + f" | mean return after {tail_from:,} | falling rate |"
         + (" reference at 100k (tianshou, gym v3; not ours) |" if with_ref else ""),
-        "| --- " * (4 + len(at) + with_ref) + "|",
+        "| --- " * (5 + len(at) + with_ref) + "|",
     ]
     for task in study.tasks:
         curves, diag, falling = {}, {}, {}
@@ -171,13 +175,15 @@ def report(args) -> str:
             ref = REFERENCE.get(task.split("-")[0], {}).get(algorithm, "")
             ref = (f" {ref.split(' / ')[0]} |" if ref else "  |") if with_ref else ""
             if not runs:
-                lines.append(f"| {task} | {algorithm} | 0 |" + " n/a |" * (len(at) + 1) + ref)
+                lines.append(f"| {task} | {algorithm} | 0 |" + " n/a |" * (len(at) + 2) + ref)
                 continue
             steps, values = series(runs, "eval/return")
             cells = []
             for frame in at:
                 hit = np.flatnonzero(steps == frame)
                 cells.append("n/a" if not hit.size else fmt_interval(values[:, hit[0]]))
+            last = steps > tail_from
+            cells.append(fmt_interval(values[:, last].mean(1)) if last.any() else "n/a")
             fall_steps, falls = series(runs, "eval/falling_rate")
             falling[algorithm] = (fall_steps, falls.mean(0), falls.min(0), falls.max(0))
             lines.append(

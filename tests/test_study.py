@@ -62,8 +62,9 @@ def test_report_from_results_alone(tmp_path, capsys):
                 "--figures", str(figures)])  # fmt: skip
     table = (figures / "tiny.md").read_text()
     # rave: [10, 30] at 100 and [20, 40] at 200: mean 20 / 30, half 12.706 * 14.14 / 1.414
-    assert "| Hopper-v5 | rave | 2 | 20 ± 127 | 30 ± 127 | 0.25 |" in table
-    assert "| Hopper-v5 | ddpg | 1 | 7 (1 seed) | 8 (1 seed) | 1.00 |" in table
+    # the last quarter (after 150 frames) holds the 200-frame evaluations only
+    assert "| Hopper-v5 | rave | 2 | 20 ± 127 | 30 ± 127 | 30 ± 127 | 0.25 |" in table
+    assert "| Hopper-v5 | ddpg | 1 | 7 (1 seed) | 8 (1 seed) | 8 (1 seed) | 1.00 |" in table
     # the published numbers are at 100k frames: no reference column beside a 200-frame study
     assert "reference" not in table
     assert table in capsys.readouterr().out
@@ -93,13 +94,16 @@ def test_run_exports_a_finished_cell_and_skips_it_next_time(tmp_path, capsys):
 def test_report_puts_the_100k_reference_beside_a_100k_study(tmp_path):
     results, figures = tmp_path / "results", tmp_path / "figures"
     for seed in (0, 1):
-        write_cell(results, "ddpg", seed, {"eval/return": [(50_000, 5 + seed), (100_000, 9)],
+        returns = [(50_000, 5 + seed), (80_000, 2 + 4 * seed), (100_000, 9)]
+        write_cell(results, "ddpg", seed, {"eval/return": returns,
                                            "eval/falling_rate": [(50_000, 1.0), (100_000, 1.0)]})  # fmt: skip
     config = write_study(tmp_path, frames=100_000)
     study.main(["report", "--config", str(config), "--results", str(results),
                 "--figures", str(figures)])  # fmt: skip
     table = (figures / "tiny.md").read_text()
     assert "| falling rate | reference at 100k (tianshou, gym v3; not ours) |" in table
-    # TianShou's DDPG on Hopper at 100k is 904 (recipes/compare.py); rave has no reference
-    assert "| Hopper-v5 | ddpg | 2 | 6 ± 6 | 9 ± 0 | 1.00 | 904 |" in table
-    assert "| Hopper-v5 | rave | 0 | n/a | n/a | n/a |  |" in table
+    # after 75,000 frames: seed 0 (2 + 9) / 2 = 5.5, seed 1 (6 + 9) / 2 = 7.5; mean 6.5,
+    # half-width 12.706 * 1.414 / 1.414 = 12.7. TianShou's DDPG on Hopper at 100k is 904
+    # (recipes/compare.py); rave has no reference
+    assert "| Hopper-v5 | ddpg | 2 | 6 ± 6 | 9 ± 0 | 6 ± 13 | 1.00 | 904 |" in table
+    assert "| Hopper-v5 | rave | 0 | n/a | n/a | n/a | n/a |  |" in table
