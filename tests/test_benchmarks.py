@@ -87,3 +87,29 @@ def test_profile_names_the_target_critic_rows(capsys):
         torch.set_num_threads(threads)
     assert "rave value target, default sizes, 1 thread(s), keep_freed_memory():" in text
     assert "[4, 1664, 64]" in text and "aten::bmm" in text
+
+
+def test_optimizer_step_times_the_recipes_own_parameter_sets(tmp_path):
+    """optimizer_step.py: one row per optimiser of a default-size RAVE agent, with the
+    agent's own tensor counts, and a time for every variant."""
+    import optimizer_step
+
+    threads = torch.get_num_threads()
+    try:
+        result = optimizer_step.main(
+            ["--steps", "2", "--rounds", "1", "--json", str(tmp_path / "o.json")]
+        )
+    finally:
+        torch.set_num_threads(threads)
+    rows = {r["parameters"]: r for r in result["rows"]}
+    # world model, (weight, bias) per layer: transition 3 trunk layers, mean and log-variance
+    # heads and 2 log-variance bounds = 12; reward 2 trunk layers, 2 heads, 2 bounds = 10;
+    # termination 3 layers = 6. Critics: 4 layers; actor: 4 layers and 2 action bounds.
+    assert [rows[k]["tensors"] for k in ("world model", "critic", "actor", "one small tensor")] == [
+        28,
+        8,
+        10,
+        1,
+    ]
+    assert rows["critic"]["elements"] == 4 * (14 * 64 + 64 + 2 * (64 * 64 + 64) + 64 + 1)
+    assert all(r[f"{v}_us"] > 0 for r in rows.values() for v in ("fused", "foreach", "loop"))
