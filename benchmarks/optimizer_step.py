@@ -39,7 +39,9 @@ def parameter_sets() -> dict[str, list[torch.Tensor]]:
     for name in ("critic", "actor"):
         sets[name] = [p for g in agent.optimizers[name].param_groups for p in g["params"]]
     sets["one small tensor"] = sets["world model"][:1]
-    return sets
+    # the actor's list also holds its action bounds (buffers, never given a gradient, so
+    # Adam skips them): only what a step updates is timed
+    return {name: [p for p in params if p.requires_grad] for name, params in sets.items()}
 
 
 def timed_optimizer(shapes: list[torch.Size], kwargs: dict):

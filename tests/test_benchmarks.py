@@ -104,7 +104,7 @@ def test_optimizer_step_times_the_recipes_own_parameter_sets(tmp_path):
     rows = {r["parameters"]: r for r in result["rows"]}
     # world model, (weight, bias) per layer: transition 3 trunk layers, mean and log-variance
     # heads and 2 log-variance bounds = 12; reward 2 trunk layers, 2 heads, 2 bounds = 10;
-    # termination 3 layers = 6. Critics: 4 layers; actor: 4 layers and 2 action bounds.
+    # termination 3 layers = 6. Critics and actor: 4 layers (the actor's bounds get no step).
     assert [rows[k]["tensors"] for k in ("world model", "critic", "actor", "one small tensor")] == [
         28,
         8,
