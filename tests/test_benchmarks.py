@@ -108,7 +108,7 @@ def test_optimizer_step_times_the_recipes_own_parameter_sets(tmp_path):
     assert [rows[k]["tensors"] for k in ("world model", "critic", "actor", "one small tensor")] == [
         28,
         8,
-        10,
+        8,
         1,
     ]
     assert rows["critic"]["elements"] == 4 * (14 * 64 + 64 + 2 * (64 * 64 + 64) + 64 + 1)
