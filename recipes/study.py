@@ -92,18 +92,30 @@ def export(run: Cell, dest: Path, started: float, commit: bool) -> None:
         commit_cell(dest)
 
 
-def run(args) -> None:
-    study = load_study(args.config)
+def started(c: Cell) -> bool:
+    return any((c.run_dir / "checkpoints").glob("checkpoint-*"))
+
+
+def missing_cells(study, results: Path, out: Path) -> dict[Cell, Path]:
+    """The cells without a ``cell.json``, in the order they run: interrupted ones first
+    (they resume), then seed by seed within a task, every algorithm's seed 0 before any
+    seed 1, so that a study cut short by the budget still covers every algorithm."""
     cells = {}
     for task in study.tasks:
-        for algorithm in study.algorithms:
-            for seed in study.seeds:
-                dest = result_dir(args.results, study, task, algorithm, seed)
+        for seed in study.seeds:
+            for algorithm in study.algorithms:
+                dest = result_dir(results, study, task, algorithm, seed)
                 if (dest / "cell.json").exists():
                     continue  # done in an earlier session
                 extra = list(study.get("overrides", []))
-                c = cell(args.out / study.name, task, algorithm, seed, study.frames, extra)
-                cells[c] = dest
+                cells[cell(out / study.name, task, algorithm, seed, study.frames, extra)] = dest
+    order = sorted(cells, key=lambda c: not started(c))  # stable: the order above otherwise
+    return {c: cells[c] for c in order}
+
+
+def run(args) -> None:
+    study = load_study(args.config)
+    cells = missing_cells(study, args.results, args.out)
     print(f"{study.name}: {len(cells)} cells to go, {args.jobs} at a time", flush=True)
     started = time.time()
 

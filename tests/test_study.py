@@ -107,3 +107,24 @@ def test_report_puts_the_100k_reference_beside_a_100k_study(tmp_path):
     # (recipes/compare.py); rave has no reference
     assert "| Hopper-v5 | ddpg | 2 | 6 ± 6 | 9 ± 0 | 6 ± 13 | 1.00 | 904 |" in table
     assert "| Hopper-v5 | rave | 0 | n/a | n/a | n/a | n/a |  |" in table
+
+
+def test_missing_cells_run_interrupted_first_then_seed_by_seed(tmp_path):
+    config = write_study(tmp_path, tasks=["Hopper-v5", "Walker2d-v5"], seeds=[0, 1])
+    results, out = tmp_path / "results", tmp_path / "runs"
+    write_cell(results, "rave", 0, {"eval/return": [(200, 1.0)]})  # Hopper rave seed 0: done
+    loaded = study.load_study(config)
+    first = study.missing_cells(loaded, results, out)
+    # Walker2d ddpg seed 1 was interrupted: it has a checkpoint and resumes first
+    (next(c for c in first if "Walker2d-v5/ddpg/seed1" in str(c.run_dir)).run_dir
+     / "checkpoints" / "checkpoint-000000000100").mkdir(parents=True)  # fmt: skip
+    order = ["/".join(c.run_dir.parts[-3:]) for c in study.missing_cells(loaded, results, out)]
+    assert order == [
+        "Walker2d-v5/ddpg/seed1",
+        "Hopper-v5/ddpg/seed0",
+        "Hopper-v5/rave/seed1",
+        "Hopper-v5/ddpg/seed1",
+        "Walker2d-v5/rave/seed0",
+        "Walker2d-v5/ddpg/seed0",
+        "Walker2d-v5/rave/seed1",
+    ]
