@@ -10,7 +10,9 @@ and point ``--results`` at the working repository: ``git worktree add ../study H
 A study (``recipes/study/<name>.yaml``) is a grid of tasks x algorithms x seeds of ordinary
 ``rave_mujoco.py`` runs at one frame budget. Runs live under ``--out`` (not kept); as each
 cell finishes, its metric CSVs are copied to ``results/<name>/<task>/<algorithm>/seed<k>/``
-with ``cell.json`` (the commit and the full config it ran with, its wall time) and, with
+with ``cell.json`` (the commit and the full config it ran with; ``train_s``, the cell's own
+collection, update and evaluation seconds; ``runner_s``, the runner's age when the cell
+ended) and, with
 ``--commit``, committed at once. A cell with a ``cell.json`` is done and never rerun; an
 interrupted one resumes from its last checkpoint when its run directory survived.
 Checkpoints and buffers are never copied.
@@ -72,6 +74,16 @@ def commit_cell(dest: Path) -> None:
     print(f"{rel} is not committed: commit it by hand", flush=True)
 
 
+def train_seconds(run_dir: Path) -> float:
+    """The cell's own collection, update and evaluation time, summed over its batches
+    (``time/*_s``; a resumed run's repeated batches count once, as if uninterrupted).
+    Process starts and checkpoint writes are not in it."""
+    total = 0.0
+    for metric in ("time/collect_s", "time/update_s", "time/eval_s"):
+        total += float(read_scalar(run_dir, metric)[1].sum())
+    return round(total)
+
+
 def export(run: Cell, dest: Path, started: float, commit: bool) -> None:
     """Copies a finished cell's metric CSVs and writes its cell.json (the commit of the
     code that ran it, read from this script's checkout); commits them."""
@@ -84,7 +96,8 @@ def export(run: Cell, dest: Path, started: float, commit: bool) -> None:
         "frames": run.frames,
         "overrides": list(run.overrides),
         "config": RunCheckpoint(run.run_dir).config(),
-        "wall_s_last_session": round(time.time() - started),
+        "train_s": train_seconds(run.run_dir),
+        "runner_s": round(time.time() - started),
         "finished": time.strftime("%Y-%m-%d %H:%M:%S %Z"),
     }
     (dest / "cell.json").write_text(json.dumps(info, indent=1) + "\n")

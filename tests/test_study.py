@@ -83,6 +83,12 @@ def test_run_exports_a_finished_cell_and_skips_it_next_time(tmp_path, capsys):
     cell = tmp_path / "results" / "tiny" / "Hopper-v5" / "ddpg" / "seed0"
     info = json.loads((cell / "cell.json").read_text())
     assert info["frames"] == 400 and len(info["commit"]) == 40
+    # the cell's own seconds: its batches' collection, update and evaluation times
+    timed = sum(
+        study.read_scalar(tmp_path / "runs" / "tiny" / "Hopper-v5" / "ddpg" / "seed0", m)[1].sum()
+        for m in ("time/collect_s", "time/update_s", "time/eval_s")
+    )
+    assert info["train_s"] == round(timed) and info["runner_s"] >= info["train_s"]
     assert info["config"]["algorithm"] == "ddpg" and info["config"]["env"]["seed"] == 0
     steps, _ = study.read_scalar(cell, "eval/return")
     assert steps.tolist() == [200, 400]
