@@ -251,3 +251,15 @@ def test_bad_batches_are_named_before_any_network_runs(method, estimator, damage
     bad = damage(batch(B=6))
     with pytest.raises(ValueError, match=message):
         getattr(loss, method)(bad)
+
+
+@pytest.mark.parametrize("estimator", ["td0", "rave"])
+def test_forward_adds_only_the_priority_to_the_callers_batch(estimator):
+    """The estimators write into the batch they get (TD(0) nothing, RAVE its diagnostics);
+    the loss hands them a shallow copy, so the caller's batch gains only ``td_error``,
+    and its entries are the same tensors as before."""
+    data = batch(B=12, terminal=(2, 7))
+    before = {k: data.get(k) for k in data.keys(True, True)}
+    make_loss(4, estimator=estimator)(data)
+    assert set(data.keys(True, True)) == set(before) | {"td_error"}
+    assert all(data.get(k) is v for k, v in before.items())

@@ -275,6 +275,9 @@ class EnsembleDDPGLoss(LossModule):
         weights = self._maybe_get_priority_weight(tensordict)
         estimator = self.value_estimator
         if isinstance(estimator, ValueExpansionEstimator):
+            # it writes its diagnostics into the batch it gets: a shallow copy keeps the
+            # caller's batch as it was
+            tensordict = tensordict.clone(False)
             target = estimator.value_estimate(tensordict)
         else:
             # TD(0)/TD(lambda) bootstrap from the next state's value: the minimum over the
