@@ -84,6 +84,14 @@ def train_seconds(run_dir: Path) -> float:
     return round(total)
 
 
+def cell_seconds(result: Path) -> float | None:
+    """:func:`train_seconds` of a finished cell's copied metrics (``None`` without them)."""
+    try:
+        return train_seconds(result)
+    except FileNotFoundError:
+        return None
+
+
 def export(run: Cell, dest: Path, started: float, commit: bool) -> None:
     """Copies a finished cell's metric CSVs and writes its cell.json (the commit of the
     code that ran it, read from this script's checkout); commits them."""
@@ -193,10 +201,17 @@ def report(args) -> str:
         + (" reference at 100k (tianshou, gym v3; not ours) |" if with_ref else ""),
         "| --- " * (5 + len(at) + with_ref) + "|",
     ]
+    cost = []  # the cells' own minutes, for the budget table
     for task in study.tasks:
         curves, diag, falling = {}, {}, {}
         for algorithm in study.algorithms:
             runs = group(study, args.results, task, algorithm)
+            minutes = [m / 60 for m in map(cell_seconds, runs) if m is not None]
+            if minutes:
+                cost.append(
+                    f"| {task} | {algorithm} | {len(minutes)} | {min(minutes):.0f} | "
+                    f"{max(minutes):.0f} | {sum(minutes) / 60:.1f} |"
+                )
             ref = REFERENCE.get(task.split("-")[0], {}).get(algorithm, "")
             ref = (f" {ref.split(' / ')[0]} |" if ref else "  |") if with_ref else ""
             if not runs:
@@ -267,6 +282,16 @@ def report(args) -> str:
                 title=f"{task}, {study.name}: share of evaluation episodes that fell",
                 ylim=(-0.05, 1.05),
             )
+    if cost:
+        lines += [
+            "",
+            "What the finished cells cost: their own collection, update and evaluation time "
+            "(`time/*_s`, summed), in minutes per cell, and hours in all.",
+            "",
+            "| task | algorithm | cells | min | max | hours |",
+            "| --- | --- | --- | --- | --- | --- |",
+            *cost,
+        ]
     text = "\n".join(lines)
     (out / f"{study.name}.md").write_text(text + "\n")
     print(text)

@@ -67,6 +67,8 @@ def test_report_from_results_alone(tmp_path, capsys):
     assert "| Hopper-v5 | ddpg | 1 | 7 (1 seed) | 8 (1 seed) | 8 (1 seed) | 1.00 |" in table
     # the published numbers are at 100k frames: no reference column beside a 200-frame study
     assert "reference" not in table
+    # no time/*_s metrics in these cells: no cost table
+    assert "What the finished cells cost" not in table
     assert table in capsys.readouterr().out
     for name in ("return", "falling_rate", "rave_diagnostics", "rave_model_error"):
         assert (figures / f"tiny_Hopper-v5_{name}.png").stat().st_size > 10_000
@@ -113,6 +115,23 @@ def test_report_puts_the_100k_reference_beside_a_100k_study(tmp_path):
     # (recipes/compare.py); rave has no reference
     assert "| Hopper-v5 | ddpg | 2 | 6 ± 6 | 9 ± 0 | 6 ± 13 | 1.00 | 904 |" in table
     assert "| Hopper-v5 | rave | 0 | n/a | n/a | n/a | n/a |  |" in table
+
+
+def test_report_sums_each_cells_own_seconds(tmp_path):
+    results, figures = tmp_path / "results", tmp_path / "figures"
+    ev = {"eval/return": [(100, 1.0), (200, 2.0)], "eval/falling_rate": [(100, 1.0), (200, 1.0)]}
+    # seed 0: 60 + 120 s collecting, 600 + 1,200 s updating, 30 s evaluating = 2,010 s;
+    # seed 1 was resumed at 100: the later 100-frame values count, (90 + 120) + (900 +
+    # 1,200) + 30 = 2,340 s. 33.5 and 39 minutes, 1.2 hours in all
+    write_cell(results, "ddpg", 0, {**ev, "time/collect_s": [(100, 60), (200, 120)],
+               "time/update_s": [(100, 600), (200, 1200)], "time/eval_s": [(200, 30)]})  # fmt: skip
+    write_cell(results, "ddpg", 1, {**ev, "time/collect_s": [(100, 5), (100, 90), (200, 120)],
+               "time/update_s": [(100, 900), (200, 1200)], "time/eval_s": [(200, 30)]})  # fmt: skip
+    config = write_study(tmp_path, algorithms=["ddpg"])
+    study.main(["report", "--config", str(config), "--results", str(results),
+                "--figures", str(figures)])  # fmt: skip
+    table = (figures / "tiny.md").read_text()
+    assert "| Hopper-v5 | ddpg | 2 | 34 | 39 | 1.2 |" in table
 
 
 def test_missing_cells_run_interrupted_first_then_seed_by_seed(tmp_path):
