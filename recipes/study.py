@@ -33,7 +33,7 @@ from omegaconf import OmegaConf
 from plot_curves import band_plot
 
 from torchrl_rave.training.checkpoint import RunCheckpoint
-from torchrl_rave.training.runs import Cell, launch_grid, read_scalar
+from torchrl_rave.training.runs import Cell, launch_grid, read_scalar, train_seconds
 
 ROOT = Path(__file__).resolve().parents[1]
 RECIPE = Path(__file__).resolve().parent / "rave_mujoco.py"
@@ -72,24 +72,6 @@ def commit_cell(dest: Path) -> None:
             print(f"git commit of {rel} failed ({err.stderr.strip()}); retrying", flush=True)
             time.sleep(5 * (attempt + 1))
     print(f"{rel} is not committed: commit it by hand", flush=True)
-
-
-def train_seconds(run_dir: Path) -> float:
-    """The cell's own collection, update and evaluation time, summed over its batches
-    (``time/*_s``; a resumed run's repeated batches count once, as if uninterrupted).
-    Process starts and checkpoint writes are not in it."""
-    total = 0.0
-    for metric in ("time/collect_s", "time/update_s", "time/eval_s"):
-        total += float(read_scalar(run_dir, metric)[1].sum())
-    return round(total)
-
-
-def cell_seconds(result: Path) -> float | None:
-    """:func:`train_seconds` of a finished cell's copied metrics (``None`` without them)."""
-    try:
-        return train_seconds(result)
-    except FileNotFoundError:
-        return None
 
 
 def export(run: Cell, dest: Path, started: float, commit: bool) -> None:
@@ -206,7 +188,7 @@ def report(args) -> str:
         curves, diag, falling = {}, {}, {}
         for algorithm in study.algorithms:
             runs = group(study, args.results, task, algorithm)
-            minutes = [m / 60 for m in map(cell_seconds, runs) if m is not None]
+            minutes = [m / 60 for m in map(train_seconds, runs) if m is not None]
             if minutes:
                 cost.append(
                     f"| {task} | {algorithm} | {len(minutes)} | {min(minutes):.0f} | "

@@ -15,7 +15,7 @@ from test_recipe import TINY, make_cfg
 
 from torchrl_rave.training import load_agent, load_policy
 from torchrl_rave.training.checkpoint import RunCheckpoint
-from torchrl_rave.training.runs import read_scalar, value_logged_at
+from torchrl_rave.training.runs import read_scalar, train_seconds, value_logged_at
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -89,6 +89,19 @@ class TestRunReader:
         assert value_logged_at(tmp_path, "eval/return", 600) == 3.5
         assert value_logged_at(tmp_path, "eval/return", 1000) is None
         assert value_logged_at(tmp_path / "missing", "eval/return", 600) is None
+
+    def test_train_seconds_sum_each_batch_once(self, tmp_path):
+        timing = tmp_path / "rave" / "scalars" / "time"
+        timing.mkdir(parents=True)
+        # batch 200 logged twice (a resume): the later 2.5 counts; eval only at 400
+        for name, rows in {
+            "collect_s": [(200, 1.0), (200, 1.5), (400, 1.0)],
+            "update_s": [(200, 9.0), (200, 10.0), (400, 11.0)],
+            "eval_s": [(400, 3.25)],
+        }.items():
+            (timing / f"{name}.csv").write_text("".join(f"{s},{v}\n" for s, v in rows))
+        assert train_seconds(tmp_path) == round(1.5 + 1.0 + 10.0 + 11.0 + 3.25)
+        assert train_seconds(tmp_path / "missing") is None
 
 
 def test_no_sys_path_edits_anywhere():

@@ -20,6 +20,7 @@ __all__ = [
     "launch_grid",
     "parse_groups",
     "read_scalar",
+    "train_seconds",
     "value_logged_at",
 ]
 
@@ -41,6 +42,20 @@ def read_scalar(run_dir: str | Path, metric: str) -> tuple[np.ndarray, np.ndarra
     latest = dict(rows)
     steps = np.array(sorted(latest), dtype=np.int64)
     return steps, np.array([latest[s] for s in steps], dtype=np.float64)
+
+
+def train_seconds(run_dir: str | Path) -> int | None:
+    """A run's own collection, update and evaluation seconds, summed over its batches
+    (``time/collect_s``, ``time/update_s``, ``time/eval_s``; a resumed run's repeated
+    batches count once, as if it had run uninterrupted), or ``None`` when it logged none.
+    Process starts and checkpoint writes are not in it."""
+    try:
+        parts = [
+            read_scalar(run_dir, f"time/{m}_s")[1].sum() for m in ("collect", "update", "eval")
+        ]
+    except FileNotFoundError:
+        return None
+    return round(float(sum(parts)))
 
 
 def value_logged_at(run_dir: str | Path, metric: str, frames: int) -> float | None:
