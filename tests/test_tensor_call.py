@@ -214,3 +214,38 @@ class TestParameterSources:
         out.sum().backward()
         grads = [p.grad for p in params.values(True, True)]
         assert all(g is not None and g.shape[0] == 1 and g.abs().sum() > 0 for g in grads)
+
+    def test_one_member_kept_views_follow_their_leaves(self):
+        # without gradients (a target network, detach=True) K = 1 keeps one view per
+        # leaf: in-place updates must show through it, a replaced leaf must not be served
+        # its predecessor's view, and repeated backward passes stay exact
+        net = critic()
+        params = TensorDictParams(random_params(net, 1))
+        call = TensorCall.plan(net, stacked=True)
+        x = {"observation": inputs()["observation"], "action": inputs()["action"].requires_grad_()}
+
+        def expected():
+            return reference(net, params.data[0], inputs())["state_action_value"]
+
+        for _ in range(3):
+            with torch.no_grad():
+                assert torch.equal(call(params, x)["state_action_value"][0], expected())
+            out = call(params, x, detach=True)["state_action_value"]
+            assert torch.equal(out[0], expected())
+            x["action"].grad = None
+            out.sum().backward()
+            assert x["action"].grad.abs().sum() > 0
+            assert all(p.grad is None for p in params.values(True, True))
+            # with gradients the view is made afresh: the gradient is the module's
+            grad_out = call(params, x)["state_action_value"]
+            grad_out.sum().backward()
+            assert all(p.grad is not None for p in params.values(True, True))
+            for p in params.values(True, True):
+                p.grad = None
+            with torch.no_grad():  # an optimiser-like in-place step
+                for p in params.values(True, True):
+                    p.mul_(0.9).add_(0.05)
+        key = ("module", "0", "weight")
+        params.set(key, torch.nn.Parameter(torch.zeros_like(params.get(key))))
+        with torch.no_grad():
+            assert torch.equal(call(params, x)["state_action_value"][0], expected())

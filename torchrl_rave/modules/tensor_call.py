@@ -21,6 +21,7 @@ time: :meth:`TensorCall.plan` returns ``None`` and the caller keeps the TensorDi
 
 from __future__ import annotations
 
+import weakref
 from collections.abc import Mapping
 
 import torch
@@ -133,6 +134,34 @@ class TensorCall:
     def __init__(self, steps: list[tuple], out_keys: list[NestedKey]) -> None:
         self.steps = steps
         self.out_keys = out_keys
+        # id(leaf) -> (weakref to the leaf, its member-0 view without autograd history)
+        self._member_views: dict[int, tuple[weakref.ref, torch.Tensor]] = {}
+
+    def __getstate__(self) -> dict:
+        return {**self.__dict__, "_member_views": {}}  # weak references do not pickle
+
+    def _member(self, leaf: torch.Tensor, detach: bool) -> torch.Tensor:
+        """``leaf[0]`` of a one-member stack (``leaf.detach()[0]`` with ``detach``).
+
+        Where autograd need not see the view (the leaf needs no gradient, gradients are
+        off, or ``detach``), the view is made once per leaf and kept: it shares the leaf's
+        storage and version counter, so in-place updates (optimiser steps, target lerps)
+        show through it, and a replaced leaf is a new key. A view autograd tracks is made
+        afresh at every call: after an in-place update of its leaf, a kept one would
+        backpropagate through ``as_strided`` instead."""
+        if not detach and leaf.requires_grad and torch.is_grad_enabled():
+            return leaf.squeeze(0)
+        if torch.compiler.is_compiling():
+            return leaf.detach().squeeze(0)
+        hit = self._member_views.get(id(leaf))
+        if hit is None or hit[0]() is not leaf:
+            if len(self._member_views) > 256:  # forget views of leaves that are gone
+                self._member_views = {
+                    k: v for k, v in self._member_views.items() if v[0]() is not None
+                }
+            hit = (weakref.ref(leaf), leaf.detach().squeeze(0))
+            self._member_views[id(leaf)] = hit
+        return hit[1]
 
     @classmethod
     def plan(cls, module: TensorDictModuleBase, *, stacked: bool = False) -> TensorCall | None:
@@ -230,12 +259,13 @@ class TensorCall:
                         weight_key, bias_key = keys
                         w = _leaf(params, *weight_key)
                         b = None if bias_key is None else _leaf(params, *bias_key)
-                    if detach:
-                        w, b = w.detach(), None if b is None else b.detach()
                     if w.dim() == 3 and w.shape[0] == 1:
                         single = True
                         x = x.squeeze(0) if x.dim() == 3 else x
-                        w, b = w.squeeze(0), None if b is None else b.squeeze(0)
+                        w = self._member(w, detach)
+                        b = None if b is None else self._member(b, detach)
+                    elif detach:
+                        w, b = w.detach(), None if b is None else b.detach()
                     x = F.linear(x, w, b) if w.dim() == 2 else _stacked_linear(x, w, b)
                 values[out_key] = x.unsqueeze(0) if single else x
             elif step[0] == "tanh":
