@@ -49,6 +49,11 @@ def table(data: dict, at: list[int], metric: str) -> str:
     return "\n".join(lines)
 
 
+def seeds(n: int) -> str:
+    """A curve's legend note: '1 seed', '3 seeds'."""
+    return f"{n} seed" + ("s" if n != 1 else "")
+
+
 def band_plot(
     series: dict[str, tuple],
     out: Path,
@@ -87,12 +92,7 @@ def plot(data: dict, metric: str, out: Path, title: str | None = None) -> None:
     series = {}
     for label, (steps, values) in data.items():
         mean, std = values.mean(0), values.std(0)
-        series[f"{label} ({values.shape[0]} seed{'s' if values.shape[0] > 1 else ''})"] = (
-            steps,
-            mean,
-            mean - std,
-            mean + std,
-        )
+        series[f"{label} ({seeds(values.shape[0])})"] = (steps, mean, mean - std, mean + std)
     band_plot(series, out, xlabel="environment frames", ylabel=metric, title=title)
 
 

@@ -30,7 +30,7 @@ from pathlib import Path
 import numpy as np
 from compare import REFERENCE, cell
 from omegaconf import OmegaConf
-from plot_curves import band_plot
+from plot_curves import band_plot, seeds
 
 from torchrl_rave.training.checkpoint import RunCheckpoint
 from torchrl_rave.training.runs import Cell, launch_grid, read_scalar, train_seconds
@@ -95,7 +95,7 @@ def export(run: Cell, dest: Path, started: float, commit: bool) -> None:
         commit_cell(dest)
 
 
-def started(c: Cell) -> bool:
+def interrupted(c: Cell) -> bool:
     return any((c.run_dir / "checkpoints").glob("checkpoint-*"))
 
 
@@ -112,7 +112,7 @@ def missing_cells(study, results: Path, out: Path) -> dict[Cell, Path]:
                     continue  # done in an earlier session
                 extra = list(study.get("overrides", []))
                 cells[cell(out / study.name, task, algorithm, seed, study.frames, extra)] = dest
-    order = sorted(cells, key=lambda c: not started(c))  # stable: the order above otherwise
+    order = sorted(cells, key=lambda c: not interrupted(c))  # stable: the order above otherwise
     return {c: cells[c] for c in order}
 
 
@@ -214,12 +214,7 @@ def report(args) -> str:
                 + f" | {falls[:, -1].mean():.2f} |{ref}"
             )
             lo, hi = values.min(0), values.max(0)
-            curves[f"{algorithm} ({len(runs)} seed{'s' if len(runs) > 1 else ''})"] = (
-                steps,
-                values.mean(0),
-                lo,
-                hi,
-            )
+            curves[f"{algorithm} ({seeds(len(runs))})"] = (steps, values.mean(0), lo, hi)
             if algorithm == "rave":
                 diag = {m: series(runs, m) for m in ("train/alpha", "train/wm_transition_mse")}
                 diag.update(

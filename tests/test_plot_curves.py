@@ -73,3 +73,7 @@ class TestPlotCurves:
         (tmp_path / "empty").mkdir()
         with pytest.raises(FileNotFoundError, match="expected one"):
             read_scalar(tmp_path / "empty", "eval/return")
+
+
+def test_legends_count_seeds_in_words():
+    assert [plot_curves.seeds(n) for n in (1, 2, 3)] == ["1 seed", "2 seeds", "3 seeds"]
