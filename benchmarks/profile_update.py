@@ -9,18 +9,60 @@ the operators by self time, twice: summed over shapes, and split by input shape 
 names the network each call belongs to: ``[4, 1664, 64]`` is the K = 4 critics on the
 M (1 + N H) = 1664 rows of the target, ``[4, 1536, 64]`` the reward members on N M H rows,
 ``[4, 128, 64]`` a training batch). Per-update milliseconds are timed outside the profiler.
+
+``--matmuls`` times the forward matmuls in place instead, without the profiler: the four
+Python-level entry points the networks call (``torch.bmm``, ``torch.baddbmm``,
+``torch.matmul``, ``F.linear``) are wrapped with a ``perf_counter`` pair (well under a
+microsecond each) and summed by input shape. On this CPU ``torch.profiler`` reports the
+large target matmuls several times slower than they run (benchmarks/README.md); this table
+is the check. Backward matmuls run inside autograd and are not in it.
 """
 
 from __future__ import annotations
 
 import argparse
 import time
+from collections import defaultdict
 
 import torch
+from torch.nn import functional as F
 from torch.profiler import ProfilerActivity, profile
 from update_throughput import batches, recipe_update
 
 from torchrl_rave.training.memory import keep_freed_memory
+
+_MATMULS = ((torch, "bmm"), (torch, "baddbmm"), (torch, "matmul"), (F, "linear"))
+
+
+def matmul_table(run, steps: int, rows: int) -> str:
+    """``run()`` with the forward matmul entry points wrapped: time per update by shape."""
+    acc: dict[tuple, list] = defaultdict(lambda: [0, 0.0])
+
+    def timed(name, fn):
+        def call(*args, **kwargs):
+            start = time.perf_counter()
+            out = fn(*args, **kwargs)
+            key = (name, tuple(tuple(a.shape) for a in args if isinstance(a, torch.Tensor)))
+            acc[key][0] += 1
+            acc[key][1] += time.perf_counter() - start
+            return out
+
+        return call
+
+    saved = [(owner, name, getattr(owner, name)) for owner, name in _MATMULS]
+    try:
+        for owner, name, fn in saved:
+            setattr(owner, name, timed(name, fn))
+        run()
+    finally:
+        for owner, name, fn in saved:
+            setattr(owner, name, fn)
+    total = sum(t for _, t in acc.values()) / steps * 1e3
+    lines = [f"forward matmuls in place: {total:.2f} ms per call of the step", ""]
+    lines.append(f"{'ms/step':>8} {'calls':>6} {'us/call':>8}  op, input shapes")
+    for (name, shapes), (n, t) in sorted(acc.items(), key=lambda kv: -kv[1][1])[:rows]:
+        lines.append(f"{t / steps * 1e3:8.3f} {n / steps:6.1f} {t / n * 1e6:8.1f}  {name} {shapes}")
+    return "\n".join(lines)
 
 
 def main(argv: list[str] | None = None) -> str:
@@ -30,6 +72,11 @@ def main(argv: list[str] | None = None) -> str:
     parser.add_argument("--steps", type=int, default=20, help="updates profiled")
     parser.add_argument("--target-only", action="store_true", help="the value target alone")
     parser.add_argument("--rows", type=int, default=15, help="rows per table")
+    parser.add_argument(
+        "--matmuls",
+        action="store_true",
+        help="time the forward matmuls in place (wrapped entry points) instead of profiling",
+    )
     parser.add_argument(
         "--default-malloc",
         action="store_true",
@@ -54,20 +101,25 @@ def main(argv: list[str] | None = None) -> str:
     start = time.perf_counter()
     run(3 * args.steps)
     ms = (time.perf_counter() - start) / (3 * args.steps) * 1e3
-    with profile(activities=[ProfilerActivity.CPU], record_shapes=True) as prof:
-        run(args.steps)
     what = "value target" if args.target_only else "update"
     out = [
         f"{args.algorithm} {what}, default sizes, {args.threads} thread(s), "
-        f"{'keep_freed_memory()' if malloc_kept else 'default malloc'}: {ms:.1f} ms each",
-        prof.key_averages().table(sort_by="self_cpu_time_total", row_limit=args.rows),
-        prof.key_averages(group_by_input_shape=True).table(
-            sort_by="self_cpu_time_total",
-            row_limit=args.rows,
-            max_name_column_width=22,
-            max_shapes_column_width=60,
-        ),
+        f"{'keep_freed_memory()' if malloc_kept else 'default malloc'}: {ms:.1f} ms each"
     ]
+    if args.matmuls:
+        out.append(matmul_table(lambda: run(args.steps), args.steps, args.rows))
+    else:
+        with profile(activities=[ProfilerActivity.CPU], record_shapes=True) as prof:
+            run(args.steps)
+        out += [
+            prof.key_averages().table(sort_by="self_cpu_time_total", row_limit=args.rows),
+            prof.key_averages(group_by_input_shape=True).table(
+                sort_by="self_cpu_time_total",
+                row_limit=args.rows,
+                max_name_column_width=22,
+                max_shapes_column_width=60,
+            ),
+        ]
     text = "\n".join(out)
     print(text)
     return text

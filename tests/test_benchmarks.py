@@ -89,6 +89,23 @@ def test_profile_names_the_target_critic_rows(capsys):
     assert "[4, 1664, 64]" in text and "aten::bmm" in text
 
 
+def test_profile_matmuls_in_place_names_the_critic_rows_and_unwraps():
+    """profile_update.py --matmuls: the K = 4 critics' hidden layer on the target's 1664
+    rows is timed twice per target (two hidden layers), and the wrapped entry points are
+    the originals again afterwards."""
+    import profile_update
+
+    originals = (torch.bmm, torch.baddbmm, torch.matmul, torch.nn.functional.linear)
+    threads = torch.get_num_threads()
+    try:
+        text = profile_update.main(["--steps", "2", "--rows", "40", "--matmuls", "--target-only"])
+    finally:
+        torch.set_num_threads(threads)
+    row = next(line for line in text.splitlines() if "(4, 1664, 64), (4, 64, 64)" in line)
+    assert row.split()[1] == "2.0"  # calls per target
+    assert (torch.bmm, torch.baddbmm, torch.matmul, torch.nn.functional.linear) == originals
+
+
 def test_optimizer_step_times_the_recipes_own_parameter_sets(tmp_path):
     """optimizer_step.py: one row per optimiser of a default-size RAVE agent, with the
     agent's own tensor counts, and a time for every variant."""

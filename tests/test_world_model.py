@@ -49,15 +49,28 @@ def transitions(B, S=3, A=2, seed=0):
 
 
 class TestEnsembleLayers:
+    # (3, 2) and (5, 1) take the output-major weight copy (out < in), (2, 3) does not
+    @pytest.mark.parametrize("fan_in,fan_out", [(3, 2), (5, 1), (2, 3)])
     @pytest.mark.parametrize("N,M", [(1, 5), (4, 7)])
-    def test_linear_equals_member_loop(self, N, M):
-        layer = EnsembleLinear(N, 3, 2)
-        shared = torch.randn(M, 3)
-        per = torch.randn(N, M, 3)
+    def test_linear_equals_member_loop(self, N, M, fan_in, fan_out):
+        layer = EnsembleLinear(N, fan_in, fan_out)
+        shared = torch.randn(M, fan_in)
+        per = torch.randn(N, M, fan_in)
         out_shared, out_per = layer(shared), layer(per, per_member=True)
         for i in range(N):
             torch.testing.assert_close(out_shared[i], shared @ layer.weight[i] + layer.bias[i])
             torch.testing.assert_close(out_per[i], per[i] @ layer.weight[i] + layer.bias[i])
+        # gradients reach the [N, in, out] parameter as a member loop's would
+        g = torch.randn(N, M, fan_out)
+        (out_per * g).sum().backward()
+        for i in range(N):
+            torch.testing.assert_close(layer.weight.grad[i], per[i].T @ g[i])
+            torch.testing.assert_close(layer.bias.grad[i], g[i].sum(0, keepdim=True))
+        assert layer.weight.shape == (N, fan_in, fan_out) and layer.weight.is_contiguous()
+        assert layer.weight.grad.stride() == layer.weight.stride()
+        # the matmul's operand: output-major ([N, out, in] in memory) exactly when out < in
+        w = layer._matmul_weight()
+        assert w.stride()[1:] == ((1, fan_in) if fan_out < fan_in else (fan_out, 1))
 
     def test_mlp_shared_equals_expanded_per_member(self):
         mlp = EnsembleMLP(3, 4, 2, num_cells=[8, 8])

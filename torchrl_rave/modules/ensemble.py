@@ -83,11 +83,28 @@ class EnsembleLinear(nn.Module):
         nn.init.uniform_(self.weight, -bound, bound)
         nn.init.uniform_(self.bias, -bound, bound)
 
+    def _matmul_weight(self) -> torch.Tensor:
+        """The ``[N, in, out]`` weight as the matmul gets it.
+
+        A layer narrower on its output than on its input (a model's output head, a
+        reward's single unit) is multiplied by an output-major copy, ``[N, out, in]`` in
+        memory as ``nn.Linear`` stores it: CPU BLAS runs a batched product whose operand
+        has a leading dimension of 1 to 11 several times slower than the same product
+        with the operand transposed (``benchmarks/README.md``, item 11). The copy is
+        ``N x in x out`` numbers, tracked by autograd; the parameter keeps its layout,
+        so checkpoints and optimiser states are unchanged.
+        """
+        w = self.weight
+        if self.out_features < self.in_features:
+            w = w.mT.clone(memory_format=torch.contiguous_format).mT
+        return w
+
     def forward(self, x: torch.Tensor, per_member: bool = False) -> torch.Tensor:
+        w = self._matmul_weight()
         if per_member:
-            return torch.baddbmm(self.bias, x, self.weight)
+            return torch.baddbmm(self.bias, x, w)
         # [M, in] @ [N, in, out] broadcasts to [N, M, out] in one kernel.
-        return torch.matmul(x, self.weight) + self.bias
+        return torch.matmul(x, w) + self.bias
 
     def extra_repr(self) -> str:
         return f"num_members={self.num_members}, in_features={self.in_features}, out_features={self.out_features}"
