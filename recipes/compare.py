@@ -19,7 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
-from torchrl_rave.training.runs import Cell, launch_grid, value_logged_at
+from torchrl_rave.training.runs import Cell, GridStopped, launch_grid, value_logged_at
 
 RECIPE = Path(__file__).resolve().parent / "rave_mujoco.py"
 
@@ -72,7 +72,10 @@ def run(cells: list[Cell], jobs: int) -> None:
     def report(c: Cell, code: int) -> None:
         print(f"{c.run_dir}: {'done' if code == 0 else f'exit code {code}'}", flush=True)
 
-    codes = launch_grid(RECIPE, todo, jobs, on_done=report)
+    try:
+        codes = launch_grid(RECIPE, todo, jobs, on_done=report)
+    except GridStopped as stop:
+        raise SystemExit(str(stop)) from None
     failed = [c for c, code in codes.items() if code != 0]
     if failed:
         raise SystemExit(f"{len(failed)} run(s) failed; see {failed[0].run_dir / 'stdout.log'}")

@@ -32,7 +32,12 @@ from torchrl_rave.training.agent import (
     make_env,
     make_replay_buffer,
 )
-from torchrl_rave.training.checkpoint import RunCheckpoint, config_for_resume, saved_config
+from torchrl_rave.training.checkpoint import (
+    RunCheckpoint,
+    config_for_resume,
+    exclusive_run,
+    saved_config,
+)
 from torchrl_rave.training.collect import (
     NonFiniteEnvOutput,
     StopRequest,
@@ -65,8 +70,16 @@ def defaults() -> DictConfig:
 
 def train(cfg: DictConfig, run_dir: str) -> dict[str, float]:
     """Runs (or, with ``cfg.resume`` set, continues) one training run; returns the final
-    evaluation metrics. Everything is written under ``run_dir``."""
+    evaluation metrics. Everything is written under ``run_dir``, which no other process
+    may train into meanwhile (:func:`exclusive_run`)."""
     check_config(cfg)
+    if not cfg.resume:
+        Path(run_dir).mkdir(parents=True, exist_ok=True)
+    with exclusive_run(cfg.resume or run_dir):
+        return _train(cfg, run_dir)
+
+
+def _train(cfg: DictConfig, run_dir: str) -> dict[str, float]:
     cfg = resolve_config(cfg).copy()  # ppo: its rollout sets the collector's batch
     if cfg.resume:
         run_dir = cfg.resume

@@ -33,7 +33,7 @@ from omegaconf import OmegaConf
 from plot_curves import band_plot, seeds
 
 from torchrl_rave.training.checkpoint import RunCheckpoint
-from torchrl_rave.training.runs import Cell, launch_grid, read_scalar, train_seconds
+from torchrl_rave.training.runs import Cell, GridStopped, launch_grid, read_scalar, train_seconds
 
 ROOT = Path(__file__).resolve().parents[1]
 RECIPE = Path(__file__).resolve().parent / "rave_mujoco.py"
@@ -132,7 +132,10 @@ def run(args) -> None:
     # cells whose runs finished but were not exported (a stop between the two)
     for c in [c for c in cells if c.finished()]:
         done(c, 0)
-    launch_grid(RECIPE, [c for c in cells if not c.finished()], args.jobs, on_done=done)
+    try:
+        launch_grid(RECIPE, [c for c in cells if not c.finished()], args.jobs, on_done=done)
+    except GridStopped as stop:
+        raise SystemExit(str(stop)) from None
 
 
 # two-sided 95 % Student-t quantiles by degrees of freedom (seeds - 1)

@@ -22,7 +22,7 @@ from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig
 
 from torchrl_rave.envs import ground_truth_q
-from torchrl_rave.training.runs import Cell, launch_grid, read_scalar
+from torchrl_rave.training.runs import Cell, GridStopped, launch_grid, read_scalar
 
 RECIPE = Path(__file__).resolve().parent / "rave_mujoco.py"
 ACTIONS = {"plus": 1.0, "minus": -1.0}
@@ -112,7 +112,10 @@ def main(cfg: DictConfig) -> str:
         for seed in seeds
     ]
     print(f"{len(cells)} runs of {frames} frames, {cfg.jobs} at a time, into {out}")
-    codes = launch_grid(RECIPE, cells, cfg.jobs)
+    try:
+        codes = launch_grid(RECIPE, cells, cfg.jobs)
+    except GridStopped as stop:
+        raise SystemExit(str(stop)) from None
     failed = [c.run_dir for c, code in codes.items() if code != 0]
     if failed:
         raise SystemExit(f"{len(failed)} run(s) failed; see {failed[0] / 'stdout.log'}")

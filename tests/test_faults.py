@@ -12,7 +12,10 @@ import errno
 import json
 import os
 import shutil
+import signal
 import subprocess
+import sys
+import threading
 import time
 import uuid
 from pathlib import Path
@@ -31,8 +34,11 @@ from torchrl_rave.training.checkpoint import (
     DamagedCheckpointWarning,
     ReplayBufferAdapter,
     RunCheckpoint,
+    RunInUse,
+    exclusive_run,
 )
 from torchrl_rave.training.collect import CollectorTimeout, NonFiniteEnvOutput, deadline
+from torchrl_rave.training.runs import Cell, GridStopped, launch_grid
 
 FRAMES = 500  # frames in the small test buffer
 
@@ -343,3 +349,70 @@ class TestDeadline:
                 wait(6)
         finally:
             pauser.wait()
+
+
+class TestStoppingRuns:
+    """A run directory has one trainer at a time, and a grid stops the way one run does."""
+
+    def test_a_second_trainer_is_refused_and_a_killed_holder_leaves_no_lock(self, tmp_path):
+        holder = subprocess.Popen(
+            [sys.executable, "-c", HOLD_LOCK, str(tmp_path)], stdout=subprocess.PIPE, text=True
+        )
+        try:
+            assert holder.stdout.readline().strip() == "held"
+            with pytest.raises(RunInUse, match=rf"{tmp_path} is in use: process {holder.pid} "):
+                rave_mujoco.train(make_cfg(*TINY), str(tmp_path))
+            assert not (tmp_path / "checkpoints").exists()  # refused before any work
+            cfg = make_cfg(*TINY, f"resume={tmp_path}")
+            with pytest.raises(RunInUse, match=str(holder.pid)):
+                rave_mujoco.train(cfg, str(tmp_path / "unused"))
+        finally:
+            holder.kill()
+            holder.wait()
+        # the lock died with its holder; and one process does not hold it twice
+        with (
+            exclusive_run(tmp_path),
+            pytest.raises(RunInUse, match=str(os.getpid())),
+            exclusive_run(tmp_path),
+        ):
+            pass
+        with exclusive_run(tmp_path):  # released at the end of the block
+            pass
+
+    def test_a_stopped_grid_passes_the_signal_on_once_and_starts_no_more(self, tmp_path):
+        if threading.current_thread() is not threading.main_thread():
+            pytest.skip("signal handlers can only be set from the main thread")
+        cells = [Cell(tmp_path / f"cell{i}", frames=100) for i in range(3)]
+
+        def stop_once_two_run():
+            end = time.perf_counter() + 120
+            while time.perf_counter() < end:
+                if all((c.run_dir / "started").exists() for c in cells[:2]):
+                    os.kill(os.getpid(), signal.SIGTERM)
+                    return
+                time.sleep(0.05)
+
+        before = signal.getsignal(signal.SIGTERM)
+        threading.Thread(target=stop_once_two_run, daemon=True).start()
+        ended = []
+        with pytest.raises(GridStopped) as stop:
+            launch_grid(GRID_CELL, cells, jobs=2, on_done=lambda c, code: ended.append(c))
+        for c in cells[:2]:  # each got the signal once, and ran to its own end
+            assert (c.run_dir / "signals").read_text() == str(int(signal.SIGTERM))
+            pid, session = map(int, (c.run_dir / "started").read_text().split())
+            assert session == pid != os.getsid(0)  # out of reach of a terminal's Ctrl-C
+            assert str(c.run_dir) in str(stop.value)
+        assert not cells[2].run_dir.exists()
+        assert "stopped by SIGTERM: 2 run(s) checkpointed" in str(stop.value)
+        assert "1 run(s) had not started" in str(stop.value)
+        assert ended == []  # stopped, not done
+        assert signal.getsignal(signal.SIGTERM) is before
+
+
+GRID_CELL = Path(__file__).with_name("grid_cell.py")
+HOLD_LOCK = """import sys, time
+from torchrl_rave.training.checkpoint import exclusive_run
+with exclusive_run(sys.argv[1]):
+    print("held", flush=True)
+    time.sleep(600)
+"""

@@ -19,12 +19,13 @@ from torchrl_rave.training.agent import Agent, load_agent, load_policy, make_age
 from torchrl_rave.training.checkpoint import RunCheckpoint
 from torchrl_rave.training.config import ALGORITHMS, check_config
 from torchrl_rave.training.memory import keep_freed_memory
-from torchrl_rave.training.runs import Cell, launch_grid, read_scalar, train_seconds
+from torchrl_rave.training.runs import Cell, GridStopped, launch_grid, read_scalar, train_seconds
 
 __all__ = [
     "ALGORITHMS",
     "Agent",
     "Cell",
+    "GridStopped",
     "RunCheckpoint",
     "check_config",
     "keep_freed_memory",

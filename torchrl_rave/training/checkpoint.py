@@ -23,7 +23,9 @@ __all__ = [
     "DamagedCheckpointWarning",
     "FORMAT_VERSION",
     "RunCheckpoint",
+    "RunInUse",
     "config_for_resume",
+    "exclusive_run",
     "saved_config",
 ]
 
@@ -32,6 +34,7 @@ FORMAT_VERSION = 3
 CHECKSUMS = "checksums.json"
 PREFIX = "checkpoint-"
 KEEP_LAST = 2
+LOCK = ".run.lock"
 
 
 class CheckpointWriteError(RuntimeError):
@@ -40,6 +43,47 @@ class CheckpointWriteError(RuntimeError):
 
 class DamagedCheckpoint(RuntimeError):
     """A checkpoint's files do not match the sizes and checksums it was written with."""
+
+
+class RunInUse(RuntimeError):
+    """Another live process is training into the same run directory."""
+
+
+@contextlib.contextmanager
+def exclusive_run(run_dir: str | Path):
+    """Holds ``<run_dir>/.run.lock`` (an exclusive ``flock``) for the block, so that two
+    processes never train into, and checkpoint over, one run directory: e.g. a resumed
+    run while the one it resumes still runs. Raises :class:`RunInUse` naming the process
+    that holds it. The lock goes with its holder: a killed process leaves none behind.
+    Where ``fcntl`` does not exist (Windows), the block runs unguarded."""
+    try:
+        import fcntl
+    except ImportError:  # pragma: no cover (not POSIX)
+        yield
+        return
+    if not Path(run_dir).is_dir():
+        raise FileNotFoundError(f"{run_dir}: no such run directory")
+    path = Path(run_dir) / LOCK
+    with open(path, "a+") as f:
+        try:
+            fcntl.flock(f, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            f.seek(0)
+            holder = f.read().strip() or "unknown"
+            raise RunInUse(
+                f"{run_dir} is in use: process {holder} is training into it (it holds "
+                f"{path}); stop that process, or wait for it, before resuming the run"
+            ) from None
+        f.seek(0)
+        f.truncate()
+        f.write(str(os.getpid()))
+        f.flush()
+        try:
+            yield
+        finally:
+            f.seek(0)
+            f.truncate()
+            fcntl.flock(f, fcntl.LOCK_UN)
 
 
 class DamagedCheckpointWarning(UserWarning):

@@ -2,13 +2,16 @@
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import glob
 import os
+import signal
 import subprocess
 import sys
+import threading
 from collections.abc import Callable, Sequence
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import ThreadPoolExecutor, wait
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -16,6 +19,7 @@ import numpy as np
 
 __all__ = [
     "Cell",
+    "GridStopped",
     "curves",
     "launch_grid",
     "parse_groups",
@@ -106,7 +110,7 @@ class Cell:
         return value_logged_at(self.run_dir, "eval/return", self.frames) is not None
 
 
-def _run_cell(script: Path, cell: Cell) -> int:
+def _start_cell(script: Path, cell: Cell) -> subprocess.Popen:
     args = [
         *cell.overrides,
         f"collector.total_frames={cell.frames}",
@@ -119,9 +123,67 @@ def _run_cell(script: Path, cell: Cell) -> int:
     # one thread per run: a grid runs `jobs` trainings side by side
     environ = {**os.environ, "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
     with open(cell.run_dir / "stdout.log", "a") as log:
-        return subprocess.call(
-            [sys.executable, str(script), *args], stdout=log, stderr=subprocess.STDOUT, env=environ
+        # its own session: a terminal's Ctrl-C reaches the launcher only, which passes
+        # it on once (a second one would stop the run before it checkpoints)
+        return subprocess.Popen(
+            [sys.executable, str(script), *args],
+            stdout=log,
+            stderr=subprocess.STDOUT,
+            env=environ,
+            start_new_session=True,
         )
+
+
+class GridStopped(KeyboardInterrupt):
+    """:func:`launch_grid` was asked to stop (SIGINT or SIGTERM): the runs it had started
+    checkpointed and stopped, the rest never started; the same call resumes them all."""
+
+
+class _Launcher:
+    """Starts cells and passes each stop signal the launcher gets to every running cell
+    exactly once; a worker thread owns each child and forwards to it."""
+
+    def __init__(self, script: Path) -> None:
+        self.script = script
+        self.signals: list[int] = []  # the stop signals received, in order
+        self.started: list[Cell] = []
+        self.lock = threading.Lock()
+
+    def handle(self, signum, frame) -> None:  # runs in the main thread
+        self.signals.append(signum)
+
+    def run(self, cell: Cell) -> int | None:
+        """The cell's exit code, or ``None`` when a stop came before it could start."""
+        with self.lock:
+            if self.signals:
+                return None
+            child = _start_cell(self.script, cell)
+            self.started.append(cell)
+        forwarded = 0
+        while True:
+            try:
+                return child.wait(timeout=0.2)
+            except subprocess.TimeoutExpired:
+                for signum in self.signals[forwarded:]:
+                    child.send_signal(signum)
+                forwarded = len(self.signals)
+
+    @contextlib.contextmanager
+    def forwarding(self):
+        """Routes SIGINT and SIGTERM to :meth:`handle` for the block (main thread only;
+        from another thread the signals keep their handlers and nothing is forwarded)."""
+        if threading.current_thread() is not threading.main_thread():
+            yield
+            return
+        previous = {sig: signal.signal(sig, self.handle) for sig in _STOP_SIGNALS}
+        try:
+            yield
+        finally:
+            for sig, handler in previous.items():
+                signal.signal(sig, handler)
+
+
+_STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM)
 
 
 def launch_grid(
@@ -136,16 +198,39 @@ def launch_grid(
     Finished cells are skipped and interrupted ones resumed from their last checkpoint,
     so the same call can be repeated until the grid is complete. Each cell's output goes
     to ``<run_dir>/stdout.log``; ``on_done(cell, code)`` is called as each one ends.
+
+    SIGINT or SIGTERM to the launcher (called from the main thread) stops the grid as
+    they stop one run: each running cell gets the signal once, checkpoints at the end of
+    its batch and exits, no further cell starts, and :class:`GridStopped` is raised once
+    they have all exited (``on_done`` is not called for a cell stopped that way). A
+    second signal is passed on too, and stops the cells at once.
     """
     if jobs < 1:
         raise ValueError(f"jobs must be >= 1, got {jobs}")
     todo = [cell for cell in cells if not cell.finished()]
+    launcher = _Launcher(Path(script))
 
-    def run(cell: Cell) -> int:
-        code = _run_cell(Path(script), cell)
-        if on_done is not None:
+    def run(cell: Cell) -> int | None:
+        code = launcher.run(cell)
+        stopped = bool(launcher.signals) and code == 0 and not cell.finished()
+        if code is not None and on_done is not None and not stopped:
             on_done(cell, code)
         return code
 
-    with ThreadPoolExecutor(jobs) as pool:
-        return dict(zip(todo, pool.map(run, todo), strict=True))
+    with launcher.forwarding(), ThreadPoolExecutor(jobs) as pool:
+        futures = [pool.submit(run, cell) for cell in todo]
+        # short waits: a signal that lands on a worker thread runs its handler only once
+        # the main thread runs Python again
+        while wait(futures, timeout=0.2).not_done:
+            pass
+        codes = {cell: future.result() for cell, future in zip(todo, futures, strict=True)}
+    if launcher.signals:
+        stopped = [c for c in launcher.started if not c.finished()]
+        waiting = sum(code is None for code in codes.values())
+        raise GridStopped(
+            f"stopped by {signal.Signals(launcher.signals[0]).name}: "
+            f"{len(stopped)} run(s) checkpointed and stopped"
+            + "".join(f"\n  {c.run_dir}" for c in stopped)
+            + f"\n{waiting} run(s) had not started; run the same command again to resume"
+        )
+    return codes
