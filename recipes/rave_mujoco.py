@@ -27,10 +27,10 @@ from torchrl.data import ReplayBuffer
 from torchrl_rave.training.agent import (
     Agent,
     critic_loss_key,
-    critic_mean,
     make_agent,
     make_env,
     make_replay_buffer,
+    q_at_points,
 )
 from torchrl_rave.training.checkpoint import (
     RunCheckpoint,
@@ -195,7 +195,7 @@ def _train(cfg: DictConfig, run_dir: str) -> dict[str, float]:
                     metrics["time/eval_s"] = time.perf_counter() - t_eval
                     while counters["next_eval"] <= frames_now:
                         counters["next_eval"] += cfg.eval.interval
-                metrics.update(q_at_points(cfg, agent))
+                metrics.update(q_at_points(agent.loss, cfg.logger.q_points, cfg.env.reward_scale))
                 if logger is not None:
                     for key, value in metrics.items():
                         logger.log_scalar(key, value, step=frames_now)
@@ -280,25 +280,6 @@ def update_on_batch(
             for h, v in enumerate(diag[keys.horizon_variance].mean(0).unbind(-1)):
                 acc[f"train/candidate_variance_h{h}"].append(v)
     return acc
-
-
-@torch.no_grad()
-def q_at_points(cfg: DictConfig, agent: Agent) -> dict[str, float]:
-    """``q/<name>``: the critics' mean Q at each ``logger.q_points`` entry
-    (``name: [observation, action]``), in environment reward units."""
-    from tensordict import TensorDict
-
-    out = {}
-    device = agent.loss.actor_network_params.device
-    for name, (obs, action) in (cfg.logger.q_points or {}).items():
-        td = TensorDict(
-            observation=torch.tensor([list(obs)], dtype=torch.float32),
-            action=torch.tensor([list(action)], dtype=torch.float32),
-            batch_size=[1],
-            device=device,
-        )
-        out[f"q/{name}"] = critic_mean(agent.loss, td).item() / cfg.env.reward_scale
-    return out
 
 
 @hydra.main(config_path=".", config_name="config", version_base="1.3")

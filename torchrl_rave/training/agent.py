@@ -7,7 +7,7 @@ from pathlib import Path
 
 import torch
 from omegaconf import DictConfig, OmegaConf
-from tensordict import TensorDictBase
+from tensordict import TensorDict, TensorDictBase
 from tensordict.nn import (
     AddStateIndependentNormalScale,
     NormalParamExtractor,
@@ -62,6 +62,7 @@ __all__ = [
     "make_agent",
     "make_env",
     "make_replay_buffer",
+    "q_at_points",
 ]
 
 
@@ -378,3 +379,20 @@ def critic_mean(loss, td: TensorDictBase) -> torch.Tensor:
         with params[k].to_module(network):
             values.append(network(td.clone())["state_action_value"].squeeze(-1))
     return torch.stack(values).mean(0)
+
+
+@torch.no_grad()
+def q_at_points(loss, points, reward_scale: float = 1.0) -> dict[str, float]:
+    """``q/<name>``: the critics' mean Q at each of ``points`` (``{name: [observation,
+    action]}``, the recipe's ``logger.q_points``), in environment reward units."""
+    out = {}
+    device = loss.actor_network_params.device
+    for name, (obs, action) in (points or {}).items():
+        td = TensorDict(
+            observation=torch.tensor([list(obs)], dtype=torch.float32),
+            action=torch.tensor([list(action)], dtype=torch.float32),
+            batch_size=[1],
+            device=device,
+        )
+        out[f"q/{name}"] = critic_mean(loss, td).item() / reward_scale
+    return out
