@@ -19,7 +19,6 @@ the seeds of one algorithm. Two results:
 from __future__ import annotations
 
 import argparse
-import math
 from pathlib import Path
 
 import numpy as np
@@ -30,27 +29,7 @@ from q_vs_return import load_run
 from torchrl_rave.training.checkpoint import saved_config
 from torchrl_rave.training.evaluate import evaluate
 from torchrl_rave.training.runs import parse_groups, read_scalar
-
-Z95 = 1.959963984540054  # the standard normal's 97.5 % quantile
-
-
-def wilson_interval(falls: int, episodes: int, z: float = Z95) -> tuple[float, float]:
-    """Wilson score interval of a binomial proportion ``falls / episodes``.
-
-    Examples:
-        >>> lo, hi = wilson_interval(3, 10)
-        >>> round(lo, 3), round(hi, 3)
-        (0.108, 0.603)
-    """
-    if episodes <= 0:
-        raise ValueError(f"episodes must be > 0, got {episodes}")
-    if not 0 <= falls <= episodes:
-        raise ValueError(f"falls must lie in [0, {episodes}], got {falls}")
-    p = falls / episodes
-    z2n = z * z / episodes
-    centre = (p + z2n / 2) / (1 + z2n)
-    half = z / (1 + z2n) * math.sqrt(p * (1 - p) / episodes + z2n / (4 * episodes))
-    return max(0.0, centre - half), min(1.0, centre + half)
+from torchrl_rave.training.stats import wilson_interval
 
 
 def final_falls(run_dir: Path, episodes: int, seed: int) -> int:

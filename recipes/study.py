@@ -34,6 +34,7 @@ from plot_curves import band_plot, seeds
 
 from torchrl_rave.training.checkpoint import RunCheckpoint
 from torchrl_rave.training.runs import Cell, GridStopped, launch_grid, read_scalar, train_seconds
+from torchrl_rave.training.stats import interval95, wilson_interval
 
 ROOT = Path(__file__).resolve().parents[1]
 RECIPE = Path(__file__).resolve().parent / "rave_mujoco.py"
@@ -138,17 +139,6 @@ def run(args) -> None:
         raise SystemExit(str(stop)) from None
 
 
-# two-sided 95 % Student-t quantiles by degrees of freedom (seeds - 1)
-T975 = {1: 12.706, 2: 4.303, 3: 3.182, 4: 2.776, 5: 2.571, 6: 2.447, 7: 2.365, 8: 2.306, 9: 2.262}
-
-
-def interval95(values: np.ndarray) -> tuple[float, float]:
-    """Mean and the half-width of its 95 % Student-t interval over seeds (NaN for one)."""
-    n = len(values)
-    half = T975[n - 1] * values.std(ddof=1) / np.sqrt(n) if 1 < n <= 10 else np.nan
-    return float(values.mean()), float(half)
-
-
 def fmt_interval(values: np.ndarray) -> str:
     mean, half = interval95(values)
     return f"{mean:.0f} (1 seed)" if len(values) == 1 else f"{mean:.0f} ± {half:.0f}"
@@ -157,6 +147,11 @@ def fmt_interval(values: np.ndarray) -> str:
 def group(study, results: Path, task: str, algorithm: str) -> list[Path]:
     dirs = [result_dir(results, study, task, algorithm, s) for s in study.seeds]
     return [d for d in dirs if (d / "cell.json").exists()]
+
+
+def eval_episodes(run: Path) -> int:
+    """Episodes per evaluation of a finished cell, from the config in its cell.json."""
+    return int(json.loads((run / "cell.json").read_text())["config"]["eval"]["episodes"])
 
 
 def series(runs: list[Path], metric: str) -> tuple[np.ndarray, np.ndarray]:
@@ -178,7 +173,8 @@ def report(args) -> str:
     lines = [
         f"Evaluation return ({study.name}): mean ± 95 % t-interval half-width over the seeds "
         "that finished; the last-quarter column first averages each seed's evaluations after "
-        f"{tail_from:,} frames; falling rate pooled over seeds at the last evaluation.",
+        f"{tail_from:,} frames; falling rate pooled over seeds at the last evaluation, "
+        "with its 95 % Wilson interval.",
         "",
         "| task | algorithm | seeds | "
         + " | ".join(f"return at {f:,}" for f in at)
@@ -211,10 +207,13 @@ def report(args) -> str:
             cells.append(fmt_interval(values[:, last].mean(1)) if last.any() else "n/a")
             fall_steps, falls = series(runs, "eval/falling_rate")
             falling[algorithm] = (fall_steps, falls.mean(0), falls.min(0), falls.max(0))
+            episodes = [eval_episodes(r) for r in runs]
+            fell = round(float(falls[:, -1] @ np.array(episodes)))
+            lo, hi = wilson_interval(fell, sum(episodes))
             lines.append(
                 f"| {task} | {algorithm} | {len(runs)} | "
                 + " | ".join(cells)
-                + f" | {falls[:, -1].mean():.2f} |{ref}"
+                + f" | {fell / sum(episodes):.2f} [{lo:.2f}, {hi:.2f}] |{ref}"
             )
             lo, hi = values.min(0), values.max(0)
             curves[f"{algorithm} ({seeds(len(runs))})"] = (steps, values.mean(0), lo, hi)

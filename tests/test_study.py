@@ -28,13 +28,15 @@ def write_study(tmp_path: Path, **fields) -> Path:
     return path
 
 
-def write_cell(results: Path, algorithm: str, seed: int, metrics: dict[str, list]) -> None:
+def write_cell(
+    results: Path, algorithm: str, seed: int, metrics: dict[str, list], episodes: int = 10
+) -> None:
     cell = results / "tiny" / "Hopper-v5" / algorithm / f"seed{seed}"
     for metric, rows in metrics.items():
         csv = cell / algorithm / "scalars" / f"{metric}.csv"
         csv.parent.mkdir(parents=True, exist_ok=True)
         csv.write_text("".join(f"{step},{value}\n" for step, value in rows))
-    (cell / "cell.json").write_text("{}")
+    (cell / "cell.json").write_text(json.dumps({"config": {"eval": {"episodes": episodes}}}))
 
 
 def test_interval95_by_hand():
@@ -50,8 +52,10 @@ def test_report_from_results_alone(tmp_path, capsys):
     # seed 0 was resumed: step 100 was logged twice, the later value (10) counts
     write_cell(results, "rave", 0, {"eval/return": [(100, 99), (100, 10), (200, 20)],
                                     "eval/falling_rate": [(100, 1.0), (200, 0.5)], **diag})  # fmt: skip
+    # seed 1 evaluated over 20 episodes: falls pool as 5 of 10 and 0 of 20, 5 / 30
     write_cell(results, "rave", 1, {"eval/return": [(100, 30), (200, 40)],
-                                    "eval/falling_rate": [(100, 1.0), (200, 0.0)], **diag})  # fmt: skip
+                                    "eval/falling_rate": [(100, 1.0), (200, 0.0)], **diag},
+               episodes=20)  # fmt: skip
     write_cell(results, "ddpg", 0, {"eval/return": [(100, 7), (200, 8)],
                                     "eval/falling_rate": [(100, 1.0), (200, 1.0)]})  # fmt: skip
     # ddpg seed 1 has metrics but no cell.json: unfinished, left out
@@ -63,8 +67,10 @@ def test_report_from_results_alone(tmp_path, capsys):
     table = (figures / "tiny.md").read_text()
     # rave: [10, 30] at 100 and [20, 40] at 200: mean 20 / 30, half 12.706 * 14.14 / 1.414
     # the last quarter (after 150 frames) holds the 200-frame evaluations only
-    assert "| Hopper-v5 | rave | 2 | 20 ± 127 | 30 ± 127 | 30 ± 127 | 0.25 |" in table
-    assert "| Hopper-v5 | ddpg | 1 | 7 (1 seed) | 8 (1 seed) | 8 (1 seed) | 1.00 |" in table
+    # Wilson 95 %: 5 / 30 gives [0.073, 0.336], 10 / 10 gives [0.722, 1]
+    assert "| Hopper-v5 | rave | 2 | 20 ± 127 | 30 ± 127 | 30 ± 127 | 0.17 [0.07, 0.34] |" in table
+    row = "| Hopper-v5 | ddpg | 1 | 7 (1 seed) | 8 (1 seed) | 8 (1 seed) | 1.00 [0.72, 1.00] |"
+    assert row in table
     # the published numbers are at 100k frames: no reference column beside a 200-frame study
     assert "reference" not in table
     # no time/*_s metrics in these cells: no cost table
@@ -113,7 +119,7 @@ def test_report_puts_the_100k_reference_beside_a_100k_study(tmp_path):
     # after 75,000 frames: seed 0 (2 + 9) / 2 = 5.5, seed 1 (6 + 9) / 2 = 7.5; mean 6.5,
     # half-width 12.706 * 1.414 / 1.414 = 12.7. TianShou's DDPG on Hopper at 100k is 904
     # (recipes/compare.py); rave has no reference
-    assert "| Hopper-v5 | ddpg | 2 | 6 ± 6 | 9 ± 0 | 6 ± 13 | 1.00 | 904 |" in table
+    assert "| Hopper-v5 | ddpg | 2 | 6 ± 6 | 9 ± 0 | 6 ± 13 | 1.00 [0.84, 1.00] | 904 |" in table
     assert "| Hopper-v5 | rave | 0 | n/a | n/a | n/a | n/a |  |" in table
 
 
