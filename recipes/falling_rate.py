@@ -23,6 +23,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
+import tqdm
 from plot_curves import band_plot
 from q_vs_return import load_run
 
@@ -32,12 +33,17 @@ from torchrl_rave.training.runs import parse_groups, read_scalar
 from torchrl_rave.training.stats import wilson_interval
 
 
-def final_falls(run_dir: Path, episodes: int, seed: int) -> int:
-    """Falls in ``episodes`` deterministic episodes of the run's latest checkpoint."""
+def final_falls(run_dir: Path, episodes: int, seed: int, label: str = "") -> int:
+    """Falls in ``episodes`` deterministic episodes of the run's latest checkpoint, one
+    episode at a time (the same episodes as one ``evaluate`` call) behind a progress bar."""
     _, env, actor, _ = load_run(run_dir)
     env.set_seed(seed)
-    rate = evaluate(env, actor, episodes)["eval/falling_rate"]
-    return round(rate * episodes)
+    falls = 0
+    with tqdm.tqdm(range(episodes), desc=f"{label} {run_dir.name}".strip(), unit="ep") as bar:
+        for _ in bar:
+            falls += round(evaluate(env, actor, 1)["eval/falling_rate"])
+            bar.set_postfix(fell=falls)
+    return falls
 
 
 def logged_falls(
@@ -108,7 +114,7 @@ def main(argv: list[str] | None = None) -> str:
         ]
         for label, runs in groups.items():
             torch.manual_seed(args.seed)
-            k = sum(final_falls(run, args.episodes, args.seed) for run in runs)
+            k = sum(final_falls(run, args.episodes, args.seed, label) for run in runs)
             n = args.episodes * len(runs)
             lo, hi = wilson_interval(k, n)
             lines.append(

@@ -71,6 +71,13 @@ def test_from_checkpoints(tmp_path):
     assert 0 <= k <= 6 and float(row.group(2)) == pytest.approx(k / 6, abs=1e-3)
     lo, hi = falling_rate.wilson_interval(k, 6)
     assert (float(row.group(3)), float(row.group(4))) == pytest.approx((lo, hi), abs=1e-3)
+    # one episode at a time (for the progress bar) plays the episodes one call plays
+    at_once = 0
+    for seed in (0, 1):
+        _, env, actor, _ = falling_rate.load_run(tmp_path / f"s{seed}")
+        env.set_seed(2024)
+        at_once += round(falling_rate.evaluate(env, actor, 3)["eval/falling_rate"] * 3)
+    assert k == at_once
 
 
 def test_help_and_bad_pattern(capsys):
