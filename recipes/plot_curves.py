@@ -87,6 +87,44 @@ def band_plot(
     plt.close(fig)
 
 
+def study_figures(prefix: Path, title: str, curves: dict, diag: dict, falling: dict) -> None:
+    """One study task's figures, each series ``(x, centre, low, high)`` over seeds:
+    ``<prefix>_return.png`` from ``curves``, ``_rave_diagnostics.png`` and
+    ``_rave_model_error.png`` from ``diag`` (metric -> (steps, per-seed values)), and
+    ``_falling_rate.png`` from ``falling``; an empty dict draws nothing."""
+    band = "(mean, band: min-max over seeds)"
+    if curves:
+        path = prefix.with_name(f"{prefix.name}_return.png")
+        band_plot(curves, path, xlabel="environment frames", ylabel=f"eval/return {band}", title=title)  # fmt: skip
+    if diag:
+        bands = {m: (s, v.mean(0), v.min(0), v.max(0)) for m, (s, v) in diag.items()}
+        error = bands.pop("wm_transition_mse")
+        task = title.split(",")[0]
+        band_plot(
+            bands,
+            prefix.with_name(f"{prefix.name}_rave_diagnostics.png"),
+            xlabel="environment frames",
+            ylabel=f"alpha, horizon weights {band}",
+            title=f"RAVE diagnostics on {task}",
+        )
+        band_plot(
+            {"world-model transition MSE (normalised)": error},
+            prefix.with_name(f"{prefix.name}_rave_model_error.png"),
+            xlabel="environment frames",
+            ylabel="mean over seeds, band: min-max",
+            title=f"RAVE's model error on {task}",
+        )
+    if falling:
+        band_plot(
+            falling,
+            prefix.with_name(f"{prefix.name}_falling_rate.png"),
+            xlabel="environment frames",
+            ylabel=f"eval/falling_rate {band}",
+            title=f"{title}: share of evaluation episodes that fell",
+            ylim=(-0.05, 1.05),
+        )
+
+
 def plot(data: dict, metric: str, out: Path, title: str | None = None) -> None:
     """Mean over seeds with a ± one-std band."""
     series = {}

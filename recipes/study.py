@@ -30,15 +30,16 @@ from pathlib import Path
 import numpy as np
 from compare import REFERENCE, cell
 from omegaconf import OmegaConf
-from plot_curves import band_plot, seeds
+from plot_curves import seeds, study_figures
 
 from torchrl_rave.training.checkpoint import RunCheckpoint
 from torchrl_rave.training.runs import Cell, GridStopped, launch_grid, read_scalar, train_seconds
-from torchrl_rave.training.stats import interval95, wilson_interval
+from torchrl_rave.training.stats import difference95, interval95, wilson_interval
 
 ROOT = Path(__file__).resolve().parents[1]
 RECIPE = Path(__file__).resolve().parent / "rave_mujoco.py"
 DEFAULT = Path(__file__).resolve().parent / "study" / "mujoco100k.yaml"
+RAVE_DIAGNOSTICS = ["alpha", "wm_transition_mse", *(f"horizon_weight_h{h}" for h in range(4))]
 
 
 def load_study(path: Path):
@@ -139,9 +140,9 @@ def run(args) -> None:
         raise SystemExit(str(stop)) from None
 
 
-def fmt_interval(values: np.ndarray) -> str:
-    mean, half = interval95(values)
-    return f"{mean:.0f} (1 seed)" if len(values) == 1 else f"{mean:.0f} ± {half:.0f}"
+def fmt_interval(mean: float, half: float, sign: str = "") -> str:
+    """``mean ± half``, or ``mean (1 seed)`` where one seed leaves no interval (NaN)."""
+    return f"{mean:{sign}.0f}" + (" (1 seed)" if np.isnan(half) else f" ± {half:.0f}")
 
 
 def group(study, results: Path, task: str, algorithm: str) -> list[Path]:
@@ -182,9 +183,9 @@ def report(args) -> str:
         + (" reference at 100k (tianshou, gym v3; not ours) |" if with_ref else ""),
         "| --- " * (5 + len(at) + with_ref) + "|",
     ]
-    cost = []  # the cells' own minutes, for the budget table
+    cost, versus = [], []  # the cells' own minutes; RAVE minus each other algorithm
     for task in study.tasks:
-        curves, diag, falling = {}, {}, {}
+        curves, diag, falling, at_frames = {}, {}, {}, {}
         for algorithm in study.algorithms:
             runs = group(study, args.results, task, algorithm)
             minutes = [m / 60 for m in map(train_seconds, runs) if m is not None]
@@ -202,9 +203,14 @@ def report(args) -> str:
             cells = []
             for frame in at:
                 hit = np.flatnonzero(steps == frame)
-                cells.append("n/a" if not hit.size else fmt_interval(values[:, hit[0]]))
+                at_frames[algorithm, frame] = values[:, hit[0]] if hit.size else None
+                cells.append(
+                    "n/a" if not hit.size else fmt_interval(*interval95(values[:, hit[0]]))
+                )
             last = steps > tail_from
-            cells.append(fmt_interval(values[:, last].mean(1)) if last.any() else "n/a")
+            cells.append(
+                fmt_interval(*interval95(values[:, last].mean(1))) if last.any() else "n/a"
+            )
             fall_steps, falls = series(runs, "eval/falling_rate")
             falling[algorithm] = (fall_steps, falls.mean(0), falls.min(0), falls.max(0))
             episodes = [eval_episodes(r) for r in runs]
@@ -218,49 +224,25 @@ def report(args) -> str:
             lo, hi = values.min(0), values.max(0)
             curves[f"{algorithm} ({seeds(len(runs))})"] = (steps, values.mean(0), lo, hi)
             if algorithm == "rave":
-                diag = {m: series(runs, m) for m in ("train/alpha", "train/wm_transition_mse")}
-                diag.update(
-                    {
-                        f"train/horizon_weight_h{h}": series(runs, f"train/horizon_weight_h{h}")
-                        for h in range(4)
-                    }
-                )
-        if curves:
-            band_plot(
-                curves,
-                out / f"{study.name}_{task}_return.png",
-                xlabel="environment frames",
-                ylabel="eval/return (mean, band: min-max over seeds)",
-                title=f"{task}, {study.name}",
-            )
-        if diag:
-            bands = {
-                m.split("/")[1]: (s, v.mean(0), v.min(0), v.max(0)) for m, (s, v) in diag.items()
-            }
-            error = bands.pop("wm_transition_mse")
-            band_plot(
-                bands,
-                out / f"{study.name}_{task}_rave_diagnostics.png",
-                xlabel="environment frames",
-                ylabel="alpha, horizon weights (mean, band: min-max over seeds)",
-                title=f"RAVE diagnostics on {task}",
-            )
-            band_plot(
-                {"world-model transition MSE (normalised)": error},
-                out / f"{study.name}_{task}_rave_model_error.png",
-                xlabel="environment frames",
-                ylabel="mean over seeds, band: min-max",
-                title=f"RAVE's model error on {task}",
-            )
-        if falling:
-            band_plot(
-                falling,
-                out / f"{study.name}_{task}_falling_rate.png",
-                xlabel="environment frames",
-                ylabel="eval/falling_rate (mean, band: min-max over seeds)",
-                title=f"{task}, {study.name}: share of evaluation episodes that fell",
-                ylim=(-0.05, 1.05),
-            )
+                diag = {m: series(runs, f"train/{m}") for m in RAVE_DIAGNOSTICS}
+        rave = [at_frames.get(("rave", f)) for f in at]
+        for other in (a for a in study.algorithms if a != "rave"):
+            theirs = [at_frames.get((other, f)) for f in at]
+            if all(v is not None for v in rave + theirs):
+                row = " | ".join(fmt_interval(*difference95(r, o), "+") for r, o in zip(rave, theirs, strict=True))  # fmt: skip
+                versus.append(f"| {task} | rave - {other} | {row} |")
+        study_figures(out / f"{study.name}_{task}", f"{task}, {study.name}", curves, diag, falling)
+    if versus:
+        lines += [
+            "",
+            "RAVE's mean minus each other algorithm's, with the 95 % interval of the "
+            "difference (Welch's standard error, min(seeds) - 1 degrees of freedom); an "
+            "interval that contains 0 does not separate the two.",
+            "",
+            "| task | difference | " + " | ".join(f"at {f:,}" for f in at) + " |",
+            "| --- " * (2 + len(at)) + "|",
+            *versus,
+        ]
     if cost:
         lines += [
             "",

@@ -71,6 +71,8 @@ def test_report_from_results_alone(tmp_path, capsys):
     assert "| Hopper-v5 | rave | 2 | 20 ± 127 | 30 ± 127 | 30 ± 127 | 0.17 [0.07, 0.34] |" in table
     row = "| Hopper-v5 | ddpg | 1 | 7 (1 seed) | 8 (1 seed) | 8 (1 seed) | 1.00 [0.72, 1.00] |"
     assert row in table
+    # one ddpg seed: a difference, no interval
+    assert "| Hopper-v5 | rave - ddpg | +13 (1 seed) | +22 (1 seed) |" in table
     # the published numbers are at 100k frames: no reference column beside a 200-frame study
     assert "reference" not in table
     # no time/*_s metrics in these cells: no cost table
@@ -103,6 +105,35 @@ def test_run_exports_a_finished_cell_and_skips_it_next_time(tmp_path, capsys):
     assert not list(cell.rglob("checkpoint*"))
     study.main(args)
     assert "tiny: 0 cells to go" in capsys.readouterr().out
+
+
+def test_report_gives_rave_minus_each_algorithm_with_welch_intervals(tmp_path):
+    results, figures = tmp_path / "results", tmp_path / "figures"
+    falls = {"eval/falling_rate": [(100, 1.0), (200, 1.0)]}
+    diag = {f"train/{m}": [(100, 0.5), (200, 0.25)] for m in RAVE_DIAGNOSTICS}
+    for seed, (rave, ddpg) in enumerate([((10, 20), (0, 5)), ((30, 40), (10, 5))]):
+        write_cell(results, "rave", seed, {"eval/return": [(100, rave[0]), (200, rave[1])], **falls, **diag})  # fmt: skip
+        write_cell(results, "ddpg", seed, {"eval/return": [(100, ddpg[0]), (200, ddpg[1])], **falls})  # fmt: skip
+    study.main(["report", "--config", str(write_study(tmp_path)), "--results", str(results),
+                "--figures", str(figures)])  # fmt: skip
+    table = (figures / "tiny.md").read_text()
+    # at 100: 20 - 5, se = sqrt(200 / 2 + 50 / 2) = 11.18, times t(0.975, 1) = 12.706: 142;
+    # at 200: 30 - 5, se = sqrt(200 / 2 + 0 / 2) = 10: 127
+    assert "| task | difference | at 100 | at 200 |" in table
+    assert "| Hopper-v5 | rave - ddpg | +15 ± 142 | +25 ± 127 |" in table
+
+
+def test_difference95_by_hand():
+    from torchrl_rave.training.stats import difference95, t975
+
+    a, b = np.array([1.0, 4.0, 4.0, 7.0]), np.array([0.0, 2.0, 4.0])
+    diff, half = difference95(a, b)
+    # means 4 and 2; variances 6 and 4; se = sqrt(6 / 4 + 4 / 3); min(4, 3) - 1 = 2 dof
+    assert diff == 2.0 and half == pytest.approx(4.303 * np.sqrt(6 / 4 + 4 / 3))
+    assert np.isnan(difference95(a, np.array([1.0]))[1])
+    assert t975(200) == t975(20) == 2.086
+    with pytest.raises(ValueError, match="degree of freedom"):
+        t975(0)
 
 
 def test_report_puts_the_100k_reference_beside_a_100k_study(tmp_path):
