@@ -93,36 +93,23 @@ def study_figures(prefix: Path, title: str, curves: dict, diag: dict, falling: d
     ``_rave_model_error.png`` from ``diag`` (metric -> (steps, per-seed values)), and
     ``_falling_rate.png`` from ``falling``; an empty dict draws nothing."""
     band = "(mean, band: min-max over seeds)"
+    figures = []  # (series, file suffix, y label, title, y limits)
     if curves:
-        path = prefix.with_name(f"{prefix.name}_return.png")
-        band_plot(curves, path, xlabel="environment frames", ylabel=f"eval/return {band}", title=title)  # fmt: skip
+        figures.append((curves, "return", f"eval/return {band}", title, None))
     if diag:
         bands = {m: (s, v.mean(0), v.min(0), v.max(0)) for m, (s, v) in diag.items()}
-        error = bands.pop("wm_transition_mse")
+        error = {"world-model transition MSE (normalised)": bands.pop("wm_transition_mse")}
         task = title.split(",")[0]
-        band_plot(
-            bands,
-            prefix.with_name(f"{prefix.name}_rave_diagnostics.png"),
-            xlabel="environment frames",
-            ylabel=f"alpha, horizon weights {band}",
-            title=f"RAVE diagnostics on {task}",
-        )
-        band_plot(
-            {"world-model transition MSE (normalised)": error},
-            prefix.with_name(f"{prefix.name}_rave_model_error.png"),
-            xlabel="environment frames",
-            ylabel="mean over seeds, band: min-max",
-            title=f"RAVE's model error on {task}",
-        )
+        figures.append((bands, "rave_diagnostics", f"alpha, horizon weights {band}",
+                        f"RAVE diagnostics on {task}", None))  # fmt: skip
+        figures.append((error, "rave_model_error", "mean over seeds, band: min-max",
+                        f"RAVE's model error on {task}", None))  # fmt: skip
     if falling:
-        band_plot(
-            falling,
-            prefix.with_name(f"{prefix.name}_falling_rate.png"),
-            xlabel="environment frames",
-            ylabel=f"eval/falling_rate {band}",
-            title=f"{title}: share of evaluation episodes that fell",
-            ylim=(-0.05, 1.05),
-        )
+        figures.append((falling, "falling_rate", f"eval/falling_rate {band}",
+                        f"{title}: share of evaluation episodes that fell", (-0.05, 1.05)))  # fmt: skip
+    for series, suffix, ylabel, name, ylim in figures:
+        path = prefix.with_name(f"{prefix.name}_{suffix}.png")
+        band_plot(series, path, xlabel="environment frames", ylabel=ylabel, title=name, ylim=ylim)
 
 
 def plot(data: dict, metric: str, out: Path, title: str | None = None) -> None:
