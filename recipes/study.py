@@ -10,8 +10,9 @@ and point ``--results`` at the working repository: ``git worktree add ../study H
 A study (``recipes/study/<name>.yaml``) is a grid of tasks x algorithms x seeds of ordinary
 ``rave_mujoco.py`` runs at one frame budget. Runs live under ``--out`` (not kept); as each
 cell finishes, its metric CSVs are copied to ``results/<name>/<task>/<algorithm>/seed<k>/``
-with ``cell.json`` (the commit and the full config it ran with; ``train_s``, the cell's own
-collection, update and evaluation seconds; ``runner_s``, the runner's age when the cell
+with ``cell.json`` (the commit and the full config it ran with; ``starts``, the commit and
+first frame of each start, where a cell resumed in a later session; ``train_s``, the cell's
+own collection, update and evaluation seconds; ``runner_s``, the runner's age when the cell
 ended) and, with
 ``--commit``, committed at once. A cell with a ``cell.json`` is done and never rerun; an
 interrupted one resumes from its last checkpoint when its run directory survived.
@@ -88,6 +89,7 @@ def export(run: Cell, dest: Path, started: float, commit: bool) -> None:
         "frames": run.frames,
         "overrides": list(run.overrides),
         "config": RunCheckpoint(run.run_dir).config(),
+        "starts": run.starts(),
         "train_s": train_seconds(run.run_dir),
         "runner_s": round(time.time() - started),
         "finished": time.strftime("%Y-%m-%d %H:%M:%S %Z"),
@@ -135,7 +137,9 @@ def run(args) -> None:
     for c in [c for c in cells if c.finished()]:
         done(c, 0)
     try:
-        launch_grid(RECIPE, [c for c in cells if not c.finished()], args.jobs, on_done=done)
+        todo = [c for c in cells if not c.finished()]
+        code = {"commit": git(ROOT, "rev-parse", "HEAD")}  # written down at each start
+        launch_grid(RECIPE, todo, args.jobs, on_done=done, record=code)
     except GridStopped as stop:
         raise SystemExit(str(stop)) from None
 

@@ -408,6 +408,28 @@ class TestStoppingRuns:
         assert ended == []  # stopped, not done
         assert signal.getsignal(signal.SIGTERM) is before
 
+    def test_a_grid_writes_down_each_start_and_the_checkpoint_it_resumes_from(self, tmp_path):
+        script = tmp_path / "argv.py"  # a stand-in run: it writes down its arguments
+        script.write_text(
+            "import sys, pathlib\n"
+            "d = next(a.split('=', 1)[1] for a in sys.argv if a.startswith('hydra.run.dir='))\n"
+            "pathlib.Path(d, 'argv').write_text(' '.join(sys.argv[1:]))\n"
+        )
+        fresh, resumed = Cell(tmp_path / "fresh", 100), Cell(tmp_path / "resumed", 100)
+        for name in ("checkpoint-250", "checkpoint-500", ".checkpoint-750"):  # hidden: half-written
+            (resumed.run_dir / "checkpoints" / name).mkdir(parents=True)
+        codes = launch_grid(script, [fresh, resumed], record={"commit": "abc"})
+        assert codes == {fresh: 0, resumed: 0}
+        assert [s["from_frame"] for s in resumed.starts()] == [500]
+        assert f"resume={resumed.run_dir}" in (resumed.run_dir / "argv").read_text()
+        assert "resume=" not in (fresh.run_dir / "argv").read_text()
+        (fresh.run_dir / "checkpoints" / "checkpoint-50").mkdir(parents=True)
+        launch_grid(script, [fresh], record={"commit": "def"})  # a later session's commit
+        starts = fresh.starts()
+        assert [(s["commit"], s["from_frame"]) for s in starts] == [("abc", 0), ("def", 50)]
+        assert all(len(s["at"]) >= 19 for s in starts)
+        assert Cell(tmp_path / "never", 100).starts() == []
+
 
 GRID_CELL = Path(__file__).with_name("grid_cell.py")
 HOLD_LOCK = """import sys, time

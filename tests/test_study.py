@@ -93,6 +93,7 @@ def test_run_exports_a_finished_cell_and_skips_it_next_time(tmp_path, capsys):
     cell = tmp_path / "results" / "tiny" / "Hopper-v5" / "ddpg" / "seed0"
     info = json.loads((cell / "cell.json").read_text())
     assert info["frames"] == 400 and len(info["commit"]) == 40
+    assert [(s["commit"], s["from_frame"]) for s in info["starts"]] == [(info["commit"], 0)]
     # the cell's own seconds: its batches' collection, update and evaluation times
     timed = sum(
         study.read_scalar(tmp_path / "runs" / "tiny" / "Hopper-v5" / "ddpg" / "seed0", m)[1].sum()

@@ -5,11 +5,13 @@ from __future__ import annotations
 import contextlib
 import csv
 import glob
+import json
 import os
 import signal
 import subprocess
 import sys
 import threading
+import time
 from collections.abc import Callable, Sequence
 from concurrent.futures import ThreadPoolExecutor, wait
 from dataclasses import dataclass, field
@@ -109,17 +111,32 @@ class Cell:
         """The run evaluated at its last frame (it always does, then checkpoints)."""
         return value_logged_at(self.run_dir, "eval/return", self.frames) is not None
 
+    def starts(self) -> list[dict]:
+        """What :func:`launch_grid` wrote down at each start of this run, oldest first:
+        ``from_frame`` (0, or the checkpoint it resumed from), ``at`` (local time) and
+        the caller's ``record`` entries."""
+        path = self.run_dir / STARTS
+        return [json.loads(x) for x in path.read_text().splitlines()] if path.exists() else []
 
-def _start_cell(script: Path, cell: Cell) -> subprocess.Popen:
+
+STARTS = "starts.jsonl"  # in a run directory, one line per start of its run
+
+
+def _start_cell(script: Path, cell: Cell, record: dict) -> subprocess.Popen:
     args = [
         *cell.overrides,
         f"collector.total_frames={cell.frames}",
         "logger.progress_bar=false",
         f"hydra.run.dir={cell.run_dir}",
     ]
-    if any((cell.run_dir / "checkpoints").glob("checkpoint-*")):
+    names = [p.name for p in (cell.run_dir / "checkpoints").glob("checkpoint-*")]
+    saved = [int(n.split("-")[1]) for n in names if n.split("-")[1].isdigit()]
+    if saved:
         args.append(f"resume={cell.run_dir}")  # an interrupted cell continues
     cell.run_dir.mkdir(parents=True, exist_ok=True)
+    when = time.strftime("%Y-%m-%d %H:%M:%S %Z")
+    with open(cell.run_dir / STARTS, "a") as f:
+        f.write(json.dumps({**record, "from_frame": max(saved, default=0), "at": when}) + "\n")
     # one thread per run: a grid runs `jobs` trainings side by side
     environ = {**os.environ, "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
     with open(cell.run_dir / "stdout.log", "a") as log:
@@ -143,8 +160,8 @@ class _Launcher:
     """Starts cells and passes each stop signal the launcher gets to every running cell
     exactly once; a worker thread owns each child and forwards to it."""
 
-    def __init__(self, script: Path) -> None:
-        self.script = script
+    def __init__(self, script: Path, record: dict) -> None:
+        self.script, self.record = script, record
         self.signals: list[int] = []  # the stop signals received, in order
         self.started: list[Cell] = []
         self.lock = threading.Lock()
@@ -157,7 +174,7 @@ class _Launcher:
         with self.lock:
             if self.signals:
                 return None
-            child = _start_cell(self.script, cell)
+            child = _start_cell(self.script, cell, self.record)
             self.started.append(cell)
         forwarded = 0
         while True:
@@ -191,13 +208,16 @@ def launch_grid(
     cells: Sequence[Cell],
     jobs: int = 1,
     on_done: Callable[[Cell, int], None] | None = None,
+    record: dict | None = None,
 ) -> dict[Cell, int]:
     """Runs the cells not yet finished, ``jobs`` at a time, each as its own
     ``python <script> <overrides>`` process at one thread; returns their exit codes.
 
     Finished cells are skipped and interrupted ones resumed from their last checkpoint,
     so the same call can be repeated until the grid is complete. Each cell's output goes
-    to ``<run_dir>/stdout.log``; ``on_done(cell, code)`` is called as each one ends.
+    to ``<run_dir>/stdout.log``; ``on_done(cell, code)`` is called as each one ends. Each
+    start is written down (:meth:`Cell.starts`) with the JSON entries of ``record``, such
+    as the commit of the code that runs it.
 
     SIGINT or SIGTERM to the launcher (called from the main thread) stops the grid as
     they stop one run: each running cell gets the signal once, checkpoints at the end of
@@ -208,7 +228,7 @@ def launch_grid(
     if jobs < 1:
         raise ValueError(f"jobs must be >= 1, got {jobs}")
     todo = [cell for cell in cells if not cell.finished()]
-    launcher = _Launcher(Path(script))
+    launcher = _Launcher(Path(script), dict(record or {}))
 
     def run(cell: Cell) -> int | None:
         code = launcher.run(cell)
