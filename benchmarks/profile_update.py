@@ -10,6 +10,10 @@ names the network each call belongs to: ``[4, 1664, 64]`` is the K = 4 critics o
 M (1 + N H) = 1664 rows of the target, ``[4, 1536, 64]`` the reward members on N M H rows,
 ``[4, 128, 64]`` a training batch). Per-update milliseconds are timed outside the profiler.
 
+``--ops`` counts the ATen operators one step makes (forward, backward and optimiser
+steps alike), with a ``TorchDispatchMode``: at these sizes their number, more than the
+arithmetic, sets the time.
+
 ``--matmuls`` times the forward matmuls in place instead, without the profiler: the four
 Python-level entry points the networks call (``torch.bmm``, ``torch.baddbmm``,
 ``torch.matmul``, ``F.linear``) are wrapped with a ``perf_counter`` pair (well under a
@@ -22,11 +26,12 @@ from __future__ import annotations
 
 import argparse
 import time
-from collections import defaultdict
+from collections import Counter, defaultdict
 
 import torch
 from torch.nn import functional as F
 from torch.profiler import ProfilerActivity, profile
+from torch.utils._python_dispatch import TorchDispatchMode
 from update_throughput import batches, recipe_update
 
 from torchrl_rave.training.memory import keep_freed_memory
@@ -65,6 +70,27 @@ def matmul_table(run, steps: int, rows: int) -> str:
     return "\n".join(lines)
 
 
+class _CountOps(TorchDispatchMode):
+    def __init__(self) -> None:
+        super().__init__()
+        self.counts: Counter[str] = Counter()
+
+    def __torch_dispatch__(self, func, types, args=(), kwargs=None):
+        self.counts[str(func.overloadpacket)] += 1
+        return func(*args, **(kwargs or {}))
+
+
+def op_table(run, steps: int, rows: int) -> str:
+    """``run()`` under a dispatch mode that counts ATen calls: calls per step by operator."""
+    with _CountOps() as mode:
+        run()
+    total = sum(mode.counts.values()) / steps
+    lines = [f"ATen calls: {total:.0f} per step", "", f"{'calls/step':>10}  operator"]
+    for name, n in mode.counts.most_common(rows):
+        lines.append(f"{n / steps:10.1f}  {name}")
+    return "\n".join(lines)
+
+
 def main(argv: list[str] | None = None) -> str:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--algorithm", default="rave")
@@ -77,6 +103,7 @@ def main(argv: list[str] | None = None) -> str:
         action="store_true",
         help="time the forward matmuls in place (wrapped entry points) instead of profiling",
     )
+    parser.add_argument("--ops", action="store_true", help="count ATen calls per step instead")
     parser.add_argument(
         "--default-malloc",
         action="store_true",
@@ -106,7 +133,9 @@ def main(argv: list[str] | None = None) -> str:
         f"{args.algorithm} {what}, default sizes, {args.threads} thread(s), "
         f"{'keep_freed_memory()' if malloc_kept else 'default malloc'}: {ms:.1f} ms each"
     ]
-    if args.matmuls:
+    if args.ops:
+        out.append(op_table(lambda: run(args.steps), args.steps, args.rows))
+    elif args.matmuls:
         out.append(matmul_table(lambda: run(args.steps), args.steps, args.rows))
     else:
         with profile(activities=[ProfilerActivity.CPU], record_shapes=True) as prof:

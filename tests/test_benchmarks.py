@@ -106,6 +106,26 @@ def test_profile_matmuls_in_place_names_the_critic_rows_and_unwraps():
     assert (torch.bmm, torch.baddbmm, torch.matmul, torch.nn.functional.linear) == originals
 
 
+def test_op_table_counts_each_aten_call_per_step():
+    """profile_update.op_table on a hand-counted step: per step one mm, two adds (one in
+    place) and a relu; over 3 steps the table says so, busiest operator first."""
+    import profile_update
+
+    a, b = torch.randn(3, 4), torch.randn(4, 2)
+
+    def run():
+        for _ in range(3):
+            c = torch.mm(a, b)
+            c = c + 1.0
+            c.add_(c)
+            torch.relu(c)
+
+    text = profile_update.op_table(run, steps=3, rows=10)
+    assert text.splitlines()[0] == "ATen calls: 4 per step"
+    rows = {line.split()[1]: float(line.split()[0]) for line in text.splitlines()[3:]}
+    assert rows == {"aten.mm": 1.0, "aten.add": 1.0, "aten.add_": 1.0, "aten.relu": 1.0}
+
+
 def test_optimizer_step_times_the_recipes_own_parameter_sets(tmp_path):
     """optimizer_step.py: one row per optimiser of a default-size RAVE agent, with the
     agent's own tensor counts, and a time for every variant."""
