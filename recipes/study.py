@@ -138,8 +138,8 @@ def run(args) -> None:
         done(c, 0)
     try:
         todo = [c for c in cells if not c.finished()]
-        code = {"commit": git(ROOT, "rev-parse", "HEAD")}  # written down at each start
-        launch_grid(RECIPE, todo, args.jobs, on_done=done, record=code)
+        record = {"commit": git(ROOT, "rev-parse", "HEAD")}  # written down at each start
+        launch_grid(RECIPE, todo, args.jobs, on_done=done, record=record)
     except GridStopped as stop:
         raise SystemExit(str(stop)) from None
 

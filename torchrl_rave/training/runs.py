@@ -19,6 +19,8 @@ from pathlib import Path
 
 import numpy as np
 
+from torchrl_rave.training.checkpoint import PREFIX, RunCheckpoint
+
 __all__ = [
     "Cell",
     "GridStopped",
@@ -113,8 +115,9 @@ class Cell:
 
     def starts(self) -> list[dict]:
         """What :func:`launch_grid` wrote down at each start of this run, oldest first:
-        ``from_frame`` (0, or the checkpoint it resumed from), ``at`` (local time) and
-        the caller's ``record`` entries."""
+        ``from_frame`` (0, or its newest checkpoint's frame, which it resumes from unless
+        that checkpoint is damaged), ``at`` (local time) and the caller's ``record``
+        entries."""
         path = self.run_dir / STARTS
         return [json.loads(x) for x in path.read_text().splitlines()] if path.exists() else []
 
@@ -129,14 +132,14 @@ def _start_cell(script: Path, cell: Cell, record: dict) -> subprocess.Popen:
         "logger.progress_bar=false",
         f"hydra.run.dir={cell.run_dir}",
     ]
-    names = [p.name for p in (cell.run_dir / "checkpoints").glob("checkpoint-*")]
-    saved = [int(n.split("-")[1]) for n in names if n.split("-")[1].isdigit()]
+    saved = RunCheckpoint(cell.run_dir).checkpoints()
     if saved:
         args.append(f"resume={cell.run_dir}")  # an interrupted cell continues
+    frame = int(saved[-1].name.removeprefix(PREFIX)) if saved else 0
     cell.run_dir.mkdir(parents=True, exist_ok=True)
     when = time.strftime("%Y-%m-%d %H:%M:%S %Z")
     with open(cell.run_dir / STARTS, "a") as f:
-        f.write(json.dumps({**record, "from_frame": max(saved, default=0), "at": when}) + "\n")
+        f.write(json.dumps({**record, "from_frame": frame, "at": when}) + "\n")
     # one thread per run: a grid runs `jobs` trainings side by side
     environ = {**os.environ, "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
     with open(cell.run_dir / "stdout.log", "a") as log:
