@@ -9,9 +9,10 @@ Measured, in this order:
 
 1. dense float32 matmul peak (GFLOP/s) of this device;
 2. full updates at the recipe's default sizes (``recipes/config.yaml``, Hopper-v5 shapes):
-   a plain-PyTorch DDPG, TorchRL's stock ``DDPGLoss``, and the recipe's ``ddpg``, ``steve``
+   a plain-PyTorch DDPG, TorchRL's stock ``DDPGLoss``, the recipe's ``ddpg``, ``steve``
    and ``rave`` (world-model step + K critics + actor + soft target update, exactly the
-   recipe's ``WorldModelTrainer.update`` / ``agent_update``); and the value target alone;
+   recipe's ``WorldModelTrainer.update`` / ``agent_update``) and the same RAVE update in
+   plain PyTorch (``plain_rave.py``); and the value target alone;
    malloc is set up as the recipe sets it (``keep_freed_memory``; ``--default-malloc``
    leaves it alone);
 3. the paper's row: seconds for 500 batches of 512 at the paper's sizes (``preset=paper``),
@@ -43,6 +44,7 @@ from pathlib import Path
 
 import torch
 from hydra import compose, initialize_config_dir
+from plain_rave import PlainRAVE
 from tensordict import TensorDict
 from torch import nn
 from torch.utils.flop_counter import FlopCounterMode
@@ -190,23 +192,28 @@ class _Spec:
         self.action_spec = Bounded(-1.0, 1.0, (ACT_DIM,), device=device)
 
 
-def recipe_update(algorithm: str, overrides: list[str], device, target_only=False):
-    """The recipe's update for ``algorithm`` (its own builders and update functions):
-    ``(step, config, loss)``."""
+def recipe_agent(algorithm: str, overrides: list[str], device):
+    """The recipe's agent for ``algorithm`` (seeded; a world model's normalisers have
+    seen random data): ``(agent, config, algorithm spec)``."""
     cfg = recipe_config([f"algorithm={algorithm}", *overrides])
     algo = check_config(cfg)
     torch.manual_seed(0)
     agent = make_agent(cfg, _Spec(device), device)
-    loss, world_model = agent.loss, agent.world_model
-    if world_model is not None:
-        # the value estimator's own input checks sync the device once per call; the
-        # recipe keeps them, and so does the benchmark
-        world_model.update_normalizers(
+    if agent.world_model is not None:
+        agent.world_model.update_normalizers(
             torch.randn(256, OBS_DIM, device=device),
             torch.rand(256, ACT_DIM, device=device) * 2 - 1,
             torch.randn(256, OBS_DIM, device=device),
             torch.randn(256, device=device),
         )
+    return agent, cfg, algo
+
+
+def recipe_update(algorithm: str, overrides: list[str], device, target_only=False):
+    """The recipe's update for ``algorithm`` (its own builders and update functions):
+    ``(step, config, loss)``."""
+    agent, cfg, algo = recipe_agent(algorithm, overrides, device)
+    loss = agent.loss
 
     if target_only:
         estimator = loss.value_estimator
@@ -280,6 +287,15 @@ def plain_ddpg_update(cfg, device):
     return step
 
 
+def plain_rave_update(device, target_only=False):
+    """RAVE in plain PyTorch (``plain_rave.PlainRAVE``), from the recipe agent's starting
+    parameters; with ``target_only``, its value target alone."""
+    rave = PlainRAVE(*recipe_agent("rave", [], device)[:2])
+    if target_only:
+        return lambda batch: rave.target(*rave.read(batch))
+    return rave.update
+
+
 def stock_ddpg_update(cfg, device):
     """TorchRL's DDPGLoss with its TD(0) estimator and SoftUpdate, as its docs build it."""
     n = cfg.network
@@ -327,9 +343,11 @@ def section_default(device, seconds, peak, compiled: str | None = None) -> dict:
     ]
     for algo in ("ddpg", "steve", "rave"):
         cases.append(Case(f"ours: {algo}", recipe_update(algo, [], device)[0], data))
+    cases.append(Case("plain PyTorch RAVE", plain_rave_update(device), data))
     for algo in ("ddpg", "steve", "rave"):
         step = recipe_update(algo, [], device, target_only=True)[0]
         cases.append(Case(f"target only: {algo}", step, data))
+    cases.append(Case("target only: plain RAVE", plain_rave_update(device, True), data))
     for case in cases:
         case.count_flops()
     if compiled:
@@ -365,6 +383,10 @@ def section_default(device, seconds, peak, compiled: str | None = None) -> dict:
         "ours ddpg / plain PyTorch DDPG": t["ours: ddpg"] / t["plain PyTorch DDPG"],
         "TorchRL DDPGLoss / plain PyTorch DDPG": t["TorchRL DDPGLoss"] / t["plain PyTorch DDPG"],
         "rave / ours ddpg": t["ours: rave"] / t["ours: ddpg"],
+        "ours rave / plain PyTorch RAVE": t["ours: rave"] / t["plain PyTorch RAVE"],
+        "ours rave / plain RAVE (target only)": t["target only: rave"]
+        / t["target only: plain RAVE"],
+        "plain RAVE / plain DDPG": t["plain PyTorch RAVE"] / t["plain PyTorch DDPG"],
     }
     if compiled:
         ratios.update(

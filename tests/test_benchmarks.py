@@ -12,6 +12,8 @@ import torch
 import update_throughput as bench
 from torch import nn
 
+from torchrl_rave.training.update import make_agent_step
+
 ROOT = Path(__file__).resolve().parents[1]
 
 
@@ -73,6 +75,81 @@ def test_runs_and_writes_ratios(tmp_path):
     assert rows["ours: ddpg"]["gflop_per_update"] == pytest.approx(
         rows["plain PyTorch DDPG"]["gflop_per_update"], rel=0.15
     )
+
+
+def test_plain_rave_is_the_recipes_rave_update():
+    """plain_rave.PlainRAVE, the plain-PyTorch baseline, computes the recipe's numbers: from
+    the same start and random stream, the same target and the same three losses, and
+    after 4 updates the same parameters, online and target (float rounding only)."""
+    from plain_rave import PlainRAVE
+
+    cpu = torch.device("cpu")
+    agent, cfg, _ = bench.recipe_agent("rave", [], cpu)
+    plain = PlainRAVE(agent, cfg)
+    data = bench.batches(cfg.replay_buffer.batch_size, cpu, count=4)
+    batch = data[0]
+    torch.manual_seed(1)
+    ours = agent.loss.value_estimator.value_estimate(batch.clone()).reshape(-1)
+    torch.manual_seed(1)
+    torch.testing.assert_close(plain.target(*plain.read(batch)), ours, rtol=1e-6, atol=1e-6)
+    assert ours.std() > 0.1  # per-sample targets, not a constant
+
+    torch.manual_seed(2)
+    model = agent.world_model_trainer.loss(batch)
+    torch.manual_seed(2)
+    expected = model["loss_transition"] + model["loss_reward"] + model["loss_termination"]
+    torch.testing.assert_close(plain.model_loss(*plain.read(batch)), expected)
+    torch.manual_seed(3)
+    out = agent.loss(batch.clone())
+    torch.manual_seed(3)
+    critic, actor = plain.agent_losses(*plain.read(batch))
+    torch.testing.assert_close((critic, actor), (out["loss_value"], out["loss_actor"]))
+
+    before = [p.detach().clone().reshape(-1) for wb in plain.critic for p in wb]
+    step = make_agent_step(cfg, agent.loss, agent.optimizers, agent.target_updater)
+    for i, batch in enumerate(data):
+        torch.manual_seed(10 + i)
+        agent.world_model_trainer.update(batch)
+        step(batch)
+        torch.manual_seed(10 + i)
+        plain.update(batch)
+    wm = agent.world_model
+
+    def flat(pairs):
+        return [p.detach().reshape(-1) for wb in pairs for p in wb]
+
+    def leaves(params):  # a parameter TensorDict's weights and biases, in layer order
+        flat_td = params.flatten_keys()
+        return [flat_td[k].reshape(-1) for k in flat_td.keys() if "action_" not in k]  # noqa: SIM118
+
+    pairs = {
+        "transition": (
+            flat(plain.transition["trunk"]) + flat([plain.transition["mean"]]),
+            [
+                p.reshape(-1)
+                for p in (*wm.transition.trunk.parameters(), *wm.transition.mean_head.parameters())
+            ],
+        ),
+        "termination": (
+            flat(plain.termination["layers"]),
+            [p.reshape(-1) for p in wm.termination.parameters()],
+        ),
+        "reward bounds": (
+            [plain.reward["max"], plain.reward["min"]],
+            [wm.reward_model.max_logvar, wm.reward_model.min_logvar],
+        ),
+        "actor": (flat(plain.actor), leaves(agent.loss.actor_network_params)),
+        "critics": (flat(plain.critic), leaves(agent.loss.value_network_params)),
+        "target critics": (
+            flat(plain.critic_target),
+            leaves(agent.loss.target_value_network_params),
+        ),
+        "target actor": (flat(plain.actor_target), leaves(agent.loss.target_actor_network_params)),
+    }
+    for name, (got, want) in pairs.items():
+        torch.testing.assert_close(got, [w.detach() for w in want], rtol=1e-5, atol=1e-6, msg=name)
+    moved = max((a - b).abs().max() for a, b in zip(flat(plain.critic), before, strict=True))
+    assert moved > 1e-4  # the updates did move the critics
 
 
 def test_profile_names_the_target_critic_rows(capsys):
