@@ -71,6 +71,12 @@ def test_runs_and_writes_ratios(tmp_path):
         "target only: rave",
     }
     assert all(r["ms_per_update"] > 0 and r["gflop_per_update"] > 0 for r in rows.values())
+    # the plain-PyTorch RAVE makes exactly our matmuls, in the update and in the target
+    for ours, plain in (
+        ("ours: rave", "plain PyTorch RAVE"),
+        ("target only: rave", "target only: plain RAVE"),
+    ):
+        assert rows[plain]["gflop_per_update"] == rows[ours]["gflop_per_update"]
     # the same networks: our DDPG and the plain one do about the same arithmetic
     assert rows["ours: ddpg"]["gflop_per_update"] == pytest.approx(
         rows["plain PyTorch DDPG"]["gflop_per_update"], rel=0.15
