@@ -287,10 +287,11 @@ def plain_ddpg_update(cfg, device):
     return step
 
 
-def plain_rave_update(device, target_only=False):
-    """RAVE in plain PyTorch (``plain_rave.PlainRAVE``), from the recipe agent's starting
-    parameters; with ``target_only``, its value target alone."""
-    rave = PlainRAVE(*recipe_agent("rave", [], device)[:2])
+def plain_rave_update(device, target_only=False, overrides=()):
+    """RAVE in plain PyTorch (``plain_rave.PlainRAVE``), from the starting parameters of
+    the recipe's agent (with config ``overrides``); with ``target_only``, its value target
+    alone."""
+    rave = PlainRAVE(*recipe_agent("rave", list(overrides), device)[:2])
     if target_only:
         return lambda batch: rave.target(*rave.read(batch))
     return rave.update
@@ -425,6 +426,7 @@ def section_paper(device, batches_timed: int, peak: float, compiled: str | None 
     }
     for algo in ("ddpg", "steve", "rave"):
         workloads[algo] = recipe_update(algo, overrides, device)[0]
+    workloads["plain PyTorch RAVE"] = plain_rave_update(device, overrides=overrides)
     if compiled:
         for algo in ("ddpg", "steve", "rave"):
             step = recipe_update(algo, overrides + compile_overrides(compiled), device)[0]
@@ -462,12 +464,22 @@ def section_paper(device, batches_timed: int, peak: float, compiled: str | None 
         out["rave / steve (compiled)"] = (
             out["rave compiled"]["s_per_batch"] / out["steve compiled"]["s_per_batch"]
         )
+    out["rave / plain PyTorch RAVE"] = (
+        out["rave"]["s_per_batch"] / out["plain PyTorch RAVE"]["s_per_batch"]
+    )
     out["rave / steve (FLOPs)"] = out["rave"]["gflop_per_update"] / out["steve"]["gflop_per_update"]
     out["batches_timed"] = batches_timed
     return out
 
 
-PAPER_ROWS = ("rave", "steve", "ddpg", "plain PyTorch DDPG", "TorchRL DDPGLoss")
+PAPER_ROWS = (
+    "rave",
+    "steve",
+    "ddpg",
+    "plain PyTorch RAVE",
+    "plain PyTorch DDPG",
+    "TorchRL DDPGLoss",
+)
 
 
 def section_scaling(device, seconds) -> list[dict]:
@@ -545,6 +557,7 @@ def print_report(result: dict) -> None:
         print(
             f"  ours ddpg / plain PyTorch DDPG {p['ddpg']['s_per_batch'] / p['plain PyTorch DDPG']['s_per_batch']:.2f}"
         )
+        print(f"  ours rave / plain PyTorch RAVE {p['rave / plain PyTorch RAVE']:.2f}")
         print(f"  rave / steve FLOPs per update {p['rave / steve (FLOPs)']:.2f}")
         print(
             f"  rave / steve {p['rave / steve']:.2f}  (paper, on its GPU: 13.20 s / 10.62 s = 1.24)"
