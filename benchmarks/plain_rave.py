@@ -42,13 +42,12 @@ def _gaussian(g) -> dict:
     }
 
 
-def _flat(model: dict) -> list[torch.Tensor]:
-    out = []
-    for v in model.values():
-        items = v if isinstance(v, list) else [v]
-        for item in items:
-            out.extend(item if isinstance(item, tuple) else [item])
-    return out
+def tensors(tree) -> list[torch.Tensor]:
+    """The tensors of nested dicts, lists and tuples, in order."""
+    if isinstance(tree, torch.Tensor):
+        return [tree]
+    items = tree.values() if isinstance(tree, dict) else tree
+    return [t for item in items for t in tensors(item)]
 
 
 def _layers(params) -> list[str]:
@@ -104,7 +103,7 @@ class PlainRAVE:
         self.eps = est.variance_eps
         self.transition = _gaussian(wm.transition)
         self.reward = _gaussian(wm.reward_model)
-        self.termination = {"layers": _ensemble(wm.termination)}
+        self.termination = _ensemble(wm.termination)
         self.norms = {
             name: (getattr(wm, name).mean.clone(), getattr(wm, name).std.clone())
             for name in ("obs_norm", "action_norm", "delta_norm", "reward_norm")
@@ -124,17 +123,13 @@ class PlainRAVE:
         ]
         self.actor_target = [(w.detach().clone(), b.detach().clone()) for w, b in self.actor]
         self.critic_target = [(w.detach().clone(), b.detach().clone()) for w, b in self.critic]
-        model = [*_flat(self.transition), *_flat(self.reward), *_flat(self.termination)]
-        self.opt_model = torch.optim.Adam(model, lr=cfg.world_model.lr, fused=True)
-        self.opt_actor = torch.optim.Adam(
-            [p for wb in self.actor for p in wb], lr=cfg.optim.lr_actor, fused=True
-        )
-        self.opt_critic = torch.optim.Adam(
-            [p for wb in self.critic for p in wb], lr=cfg.optim.lr_critic, fused=True
-        )
+        self.model = [self.transition, self.reward, self.termination]
+        self.opt_model = torch.optim.Adam(tensors(self.model), lr=cfg.world_model.lr, fused=True)
+        self.opt_actor = torch.optim.Adam(tensors(self.actor), lr=cfg.optim.lr_actor, fused=True)
+        self.opt_critic = torch.optim.Adam(tensors(self.critic), lr=cfg.optim.lr_critic, fused=True)
         self.soft_pairs = [
-            ([p for wb in self.actor_target for p in wb], [p for wb in self.actor for p in wb]),
-            ([p for wb in self.critic_target for p in wb], [p for wb in self.critic for p in wb]),
+            (tensors(self.actor_target), tensors(self.actor)),
+            (tensors(self.critic_target), tensors(self.critic)),
         ]
 
     # ------------------------------------------------------------------ networks
@@ -192,9 +187,7 @@ class PlainRAVE:
         mu, std = self.norms["reward_norm"]
         rewards = (mean + torch.randn_like(mean) * (0.5 * logvar).exp()) * std + mu
         rewards = rewards.reshape(N, N, M, H).transpose(0, 1)  # [Ni, Nj, M, H]
-        logits = _ensemble_mlp(
-            self.termination["layers"], norm("obs_norm", s1).reshape(N, M * H, S), False
-        )
+        logits = _ensemble_mlp(self.termination, norm("obs_norm", s1).reshape(N, M * H, S), False)
         done = torch.sigmoid(logits).reshape(N, M, H)
         q = self.critics(
             torch.cat([states[0, :, 0], s1.reshape(-1, S)]),
@@ -230,7 +223,7 @@ class PlainRAVE:
         xr = torch.cat([x, norm("obs_norm", next_obs)], -1)
         mean, logvar = _gaussian_mlp(self.reward, xr, shared=False)
         loss = loss + _nll(mean, logvar, norm("reward_norm", reward)).sum()
-        logits = _ensemble_mlp(self.termination["layers"], norm("obs_norm", next_obs), False)
+        logits = _ensemble_mlp(self.termination, norm("obs_norm", next_obs), False)
         bce = F.binary_cross_entropy_with_logits(logits, terminated, reduction="none")
         penalty = sum(g["max"].sum() - g["min"].sum() for g in (self.transition, self.reward))
         return loss + bce.mean((1, 2)).sum() + 0.01 * penalty

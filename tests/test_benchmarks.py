@@ -87,7 +87,7 @@ def test_plain_rave_is_the_recipes_rave_update():
     """plain_rave.PlainRAVE, the plain-PyTorch baseline, computes the recipe's numbers: from
     the same start and random stream, the same target and the same three losses, and
     after 4 updates the same parameters, online and target (float rounding only)."""
-    from plain_rave import PlainRAVE
+    from plain_rave import PlainRAVE, tensors
 
     cpu = torch.device("cpu")
     agent, cfg, _ = bench.recipe_agent("rave", [], cpu)
@@ -111,7 +111,7 @@ def test_plain_rave_is_the_recipes_rave_update():
     critic, actor = plain.agent_losses(*plain.read(batch))
     torch.testing.assert_close((critic, actor), (out["loss_value"], out["loss_actor"]))
 
-    before = [p.detach().clone().reshape(-1) for wb in plain.critic for p in wb]
+    before = [p.detach().clone() for p in tensors(plain.critic)]
     step = make_agent_step(cfg, agent.loss, agent.optimizers, agent.target_updater)
     for i, batch in enumerate(data):
         torch.manual_seed(10 + i)
@@ -119,42 +119,32 @@ def test_plain_rave_is_the_recipes_rave_update():
         step(batch)
         torch.manual_seed(10 + i)
         plain.update(batch)
-    wm = agent.world_model
 
-    def flat(pairs):
-        return [p.detach().reshape(-1) for wb in pairs for p in wb]
+    def flat(ts):
+        return [t.detach().reshape(-1) for t in ts]
 
     def leaves(params):  # a parameter TensorDict's weights and biases, in layer order
         flat_td = params.flatten_keys()
-        return [flat_td[k].reshape(-1) for k in flat_td.keys() if "action_" not in k]  # noqa: SIM118
+        return flat([flat_td[k] for k in flat_td.keys() if "action_" not in k])  # noqa: SIM118
 
+    def gaussian(g):  # in plain_rave's order: trunk, mean head, log-variance head, bounds
+        heads = (*g.trunk.parameters(), *g.mean_head.parameters(), *g.logvar_head.parameters())
+        return [*heads, g.max_logvar, g.min_logvar]
+
+    wm, loss = agent.world_model, agent.loss
     pairs = {
-        "transition": (
-            flat(plain.transition["trunk"]) + flat([plain.transition["mean"]]),
-            [
-                p.reshape(-1)
-                for p in (*wm.transition.trunk.parameters(), *wm.transition.mean_head.parameters())
-            ],
+        "world model": (
+            plain.model,
+            [*gaussian(wm.transition), *gaussian(wm.reward_model), *wm.termination.parameters()],
         ),
-        "termination": (
-            flat(plain.termination["layers"]),
-            [p.reshape(-1) for p in wm.termination.parameters()],
-        ),
-        "reward bounds": (
-            [plain.reward["max"], plain.reward["min"]],
-            [wm.reward_model.max_logvar, wm.reward_model.min_logvar],
-        ),
-        "actor": (flat(plain.actor), leaves(agent.loss.actor_network_params)),
-        "critics": (flat(plain.critic), leaves(agent.loss.value_network_params)),
-        "target critics": (
-            flat(plain.critic_target),
-            leaves(agent.loss.target_value_network_params),
-        ),
-        "target actor": (flat(plain.actor_target), leaves(agent.loss.target_actor_network_params)),
+        "actor": (plain.actor, leaves(loss.actor_network_params)),
+        "critics": (plain.critic, leaves(loss.value_network_params)),
+        "target critics": (plain.critic_target, leaves(loss.target_value_network_params)),
+        "target actor": (plain.actor_target, leaves(loss.target_actor_network_params)),
     }
     for name, (got, want) in pairs.items():
-        torch.testing.assert_close(got, [w.detach() for w in want], rtol=1e-5, atol=1e-6, msg=name)
-    moved = max((a - b).abs().max() for a, b in zip(flat(plain.critic), before, strict=True))
+        torch.testing.assert_close(flat(tensors(got)), flat(want), rtol=1e-5, atol=1e-6, msg=name)
+    moved = max((a - b).abs().max() for a, b in zip(tensors(plain.critic), before, strict=True))
     assert moved > 1e-4  # the updates did move the critics
 
 
