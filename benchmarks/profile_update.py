@@ -14,6 +14,13 @@ M (1 + N H) = 1664 rows of the target, ``[4, 1536, 64]`` the reward members on N
 steps alike), with a ``TorchDispatchMode``: at these sizes their number, more than the
 arithmetic, sets the time.
 
+``--floor`` is a lower bound on the step's time: it records every matmul kernel one step
+calls (``mm``, ``addmm``, ``bmm``, ``baddbmm``, forward and backward, with their operands'
+shapes and strides) and replays exactly that list back to back on operands of the same
+layout, with nothing else in between, against the dense matmul peak measured in the same
+process. No update that does these products with these kernels can be faster; the
+replay's operands stay warm in cache, which only makes the bound lower.
+
 ``--matmuls`` times the forward matmuls in place instead, without the profiler: the four
 Python-level entry points the networks call (``torch.bmm``, ``torch.baddbmm``,
 ``torch.matmul``, ``F.linear``) are wrapped with a ``perf_counter`` pair (well under a
@@ -91,6 +98,81 @@ def op_table(run, steps: int, rows: int) -> str:
     return "\n".join(lines)
 
 
+_GEMMS = ("mm", "addmm", "bmm", "baddbmm")
+
+
+class _RecordMatmuls(TorchDispatchMode):
+    """Records each matmul kernel call: ``(op, operand layouts, scalar args, FLOPs)``;
+    counts every ATen call in ``total``."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.calls: list[tuple] = []
+        self.total = 0
+
+    def __torch_dispatch__(self, func, types, args=(), kwargs=None):
+        kwargs = kwargs or {}
+        self.total += 1
+        name = func.overloadpacket.__name__
+        if name in _GEMMS and not kwargs.get("out"):
+            layouts = [
+                (tuple(a.shape), a.stride(), a.dtype) if isinstance(a, torch.Tensor) else a
+                for a in args
+            ]
+            a, b = args[-2], args[-1]  # the two factors (addmm / baddbmm: bias first)
+            flops = 2 * a.numel() * b.shape[-1]
+            self.calls.append((func, layouts, kwargs, flops))
+        return func(*args, **kwargs)
+
+
+def _operand(layout):
+    """A random tensor with a recorded ``(shape, stride, dtype)`` (a view of a flat
+    buffer just long enough for it: transposed and broadcast layouts included)."""
+    if not isinstance(layout, tuple):
+        return layout
+    shape, stride, dtype = layout
+    size = 1 + sum((n - 1) * st for n, st in zip(shape, stride, strict=True))
+    return torch.randn(size, dtype=dtype).as_strided(shape, stride)
+
+
+def cheapest_call_us(n: int = 20_000, rounds: int = 5) -> float:
+    """Microseconds of about the cheapest ATen call Python can make: an in-place add on a
+    one-element tensor (median of ``rounds`` loops of ``n``)."""
+    x = torch.zeros(1)
+    times = []
+    for _ in range(rounds):
+        start = time.perf_counter()
+        for _ in range(n):
+            x.add_(1.0)
+        times.append((time.perf_counter() - start) / n * 1e6)
+    return sorted(times)[rounds // 2]
+
+
+def matmul_floor(run, steps: int, rounds: int = 7) -> dict:
+    """``run()`` (``steps`` steps) under :class:`_RecordMatmuls`, then the recorded matmuls
+    of one step replayed back to back: ``{"calls", "other_calls", "gflop", "ms"}`` per step
+    (``ms``: median of ``rounds`` timed replays of ``steps`` steps each)."""
+    with _RecordMatmuls() as rec:
+        run()
+    calls = rec.calls[: len(rec.calls) // steps]  # one step's worth
+    replay = [(func, [_operand(x) for x in layouts], kw) for func, layouts, kw, _ in calls]
+    for func, args, kw in replay:  # warm-up
+        func(*args, **kw)
+    times = []
+    for _ in range(rounds):
+        start = time.perf_counter()
+        for _ in range(steps):
+            for func, args, kw in replay:
+                func(*args, **kw)
+        times.append((time.perf_counter() - start) / steps)
+    return {
+        "calls": len(calls),
+        "other_calls": (rec.total - len(rec.calls)) // steps,
+        "gflop": sum(c[3] for c in calls) / 1e9,
+        "ms": sorted(times)[rounds // 2] * 1e3,
+    }
+
+
 def main(argv: list[str] | None = None) -> str:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--algorithm", default="rave")
@@ -104,6 +186,11 @@ def main(argv: list[str] | None = None) -> str:
         help="time the forward matmuls in place (wrapped entry points) instead of profiling",
     )
     parser.add_argument("--ops", action="store_true", help="count ATen calls per step instead")
+    parser.add_argument(
+        "--floor",
+        action="store_true",
+        help="replay one step's matmul kernels back to back: a lower bound on its time",
+    )
     parser.add_argument(
         "--default-malloc",
         action="store_true",
@@ -133,7 +220,25 @@ def main(argv: list[str] | None = None) -> str:
         f"{args.algorithm} {what}, default sizes, {args.threads} thread(s), "
         f"{'keep_freed_memory()' if malloc_kept else 'default malloc'}: {ms:.1f} ms each"
     ]
-    if args.ops:
+    if args.floor:
+        from update_throughput import matmul_peak
+
+        peak = matmul_peak(device)
+        f = matmul_floor(lambda: run(args.steps), args.steps)
+        budget = f["gflop"] / (0.4 * peak) * 1e3
+        left = (budget - f["ms"]) * 1e3 / f["other_calls"]
+        out.append(
+            f"matmul peak {peak:.1f} GFLOP/s; one step: {f['calls']} matmul kernels, "
+            f"{f['gflop']:.3f} GFLOP\n"
+            f"  the step as it runs:   {ms:6.2f} ms = {f['gflop'] / ms * 1e5 / peak:5.1f} % of peak\n"
+            f"  its matmuls alone:     {f['ms']:6.2f} ms = "
+            f"{f['gflop'] / f['ms'] * 1e5 / peak:5.1f} % of peak ({f['ms'] / ms:.0%} of the step)\n"
+            f"  40 % of peak would be: {budget:6.2f} ms, which leaves {left:.2f} us for each of "
+            f"its {f['other_calls']} other ATen calls;\n"
+            f"  the cheapest ATen call from Python (add_ on one element) takes "
+            f"{cheapest_call_us():.2f} us"
+        )
+    elif args.ops:
         out.append(op_table(lambda: run(args.steps), args.steps, args.rows))
     elif args.matmuls:
         out.append(matmul_table(lambda: run(args.steps), args.steps, args.rows))

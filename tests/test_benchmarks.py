@@ -199,6 +199,83 @@ def test_op_table_counts_each_aten_call_per_step():
     assert rows == {"aten.mm": 1.0, "aten.add": 1.0, "aten.add_": 1.0, "aten.relu": 1.0}
 
 
+def test_floor_records_forward_and_backward_matmuls_with_their_layouts():
+    """profile_update.matmul_floor on a hand-counted step: a forward ``mm`` and
+    ``baddbmm`` and the one backward ``mm`` (the weight's gradient, on the transposed
+    input) per step, their FLOPs exactly, and the other ATen calls counted apart."""
+    import profile_update
+
+    x, w = torch.randn(8, 4), torch.randn(4, 3, requires_grad=True)
+    bias, p, q = torch.randn(2, 1, 5), torch.randn(2, 6, 7), torch.randn(2, 7, 5)
+
+    def run():
+        for _ in range(3):
+            (x @ w).sum().backward()
+            torch.baddbmm(bias, p, q)
+
+    with profile_update._RecordMatmuls() as rec:
+        run()
+    ops = [(c[0].overloadpacket.__name__, c[3]) for c in rec.calls[:3]]
+    assert ops == [("mm", 2 * 8 * 4 * 3), ("mm", 2 * 4 * 8 * 3), ("baddbmm", 2 * 2 * 6 * 7 * 5)]
+    # the backward product reads the input transposed: [4, 8] with strides (1, 4)
+    assert rec.calls[1][1][0][:2] == ((4, 8), (1, 4))
+    floor = profile_update.matmul_floor(run, steps=3, rounds=3)
+    assert floor["calls"] == 3 and floor["ms"] > 0
+    assert floor["gflop"] == (192 + 192 + 840) / 1e9
+    assert floor["other_calls"] > 0  # sum, its backward's ones and expand, the transpose
+
+
+@pytest.mark.parametrize(
+    "layout",
+    [((3, 4), (4, 1)), ((4, 3), (1, 4)), ((2, 5, 3), (0, 3, 1)), ((2, 3, 4), (24, 8, 1))],
+)
+def test_floor_operands_have_the_recorded_layout(layout):
+    """Replayed operands keep a recorded shape and stride: contiguous, transposed,
+    broadcast (stride 0) and a strided slice."""
+    import profile_update
+
+    t = profile_update._operand((*layout, torch.float32))
+    assert (tuple(t.shape), t.stride()) == layout
+
+
+def test_floor_of_the_rave_update_counts_every_flop_of_the_flop_counter():
+    """The floor's recorded matmuls of one default-size RAVE update carry exactly the
+    FLOPs ``torch.utils.flop_counter`` counts for it (forward and backward)."""
+    import profile_update
+
+    step, cfg, _ = bench.recipe_update("rave", [], torch.device("cpu"))
+    data = bench.batches(cfg.replay_buffer.batch_size, torch.device("cpu"), count=2)
+    step(data[0])
+    case = bench.Case("rave", step, data)
+    case.count_flops()
+    floor = profile_update.matmul_floor(lambda: step(data[1]), steps=1, rounds=1)
+    assert floor["gflop"] * 1e9 == pytest.approx(case.flops, rel=0, abs=0.5)
+
+
+def test_floor_report_sets_the_step_beside_its_matmuls_and_the_40_percent_budget():
+    """profile_update.py --floor: the report's numbers agree with each other (the
+    budget is the step's FLOPs at 40 % of the printed peak)."""
+    import re
+
+    import profile_update
+
+    threads = torch.get_num_threads()
+    try:
+        text = profile_update.main(["--floor", "--steps", "2", "--target-only"])
+    finally:
+        torch.set_num_threads(threads)
+    peak = float(re.search(r"matmul peak ([\d.]+) GFLOP/s", text).group(1))
+    gflop = float(re.search(r"([\d.]+) GFLOP\n", text).group(1))
+    budget = float(re.search(r"40 % of peak would be: +([\d.]+) ms", text).group(1))
+    # The target's products, one per layer and call: the 4-layer transition model (3 trunk
+    # layers, mean and log-variance heads) on the real step and H = 3 rollout steps,
+    # 4 x 5; the 3-layer reward model once, 2 + 2; the termination model once, 3; the
+    # K critics once, batched, 4; the 4-layer actor at H + 1 states, 4 x 4.
+    assert f"{4 * 5 + 4 + 3 + 4 + 4 * 4} matmul kernels" in text
+    assert budget == pytest.approx(gflop / (0.4 * peak) * 1e3, rel=0.005)  # 3 printed digits
+    assert re.search(r"its matmuls alone: +[\d.]+ ms", text)
+
+
 def test_optimizer_step_times_the_recipes_own_parameter_sets(tmp_path):
     """optimizer_step.py: one row per optimiser of a default-size RAVE agent, with the
     agent's own tensor counts, and a time for every variant."""
