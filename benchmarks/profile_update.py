@@ -39,7 +39,7 @@ import torch
 from torch.nn import functional as F
 from torch.profiler import ProfilerActivity, profile
 from torch.utils._python_dispatch import TorchDispatchMode
-from update_throughput import batches, recipe_update
+from update_throughput import batches, recipe_update, record_matmuls
 
 from torchrl_rave.training.memory import keep_freed_memory
 
@@ -98,43 +98,6 @@ def op_table(run, steps: int, rows: int) -> str:
     return "\n".join(lines)
 
 
-_GEMMS = ("mm", "addmm", "bmm", "baddbmm")
-
-
-class _RecordMatmuls(TorchDispatchMode):
-    """Records each matmul kernel call: ``(op, operand layouts, scalar args, FLOPs)``;
-    counts every ATen call in ``total``."""
-
-    def __init__(self) -> None:
-        super().__init__()
-        self.calls: list[tuple] = []
-        self.total = 0
-
-    def __torch_dispatch__(self, func, types, args=(), kwargs=None):
-        kwargs = kwargs or {}
-        self.total += 1
-        name = func.overloadpacket.__name__
-        if name in _GEMMS and not kwargs.get("out"):
-            layouts = [
-                (tuple(a.shape), a.stride(), a.dtype) if isinstance(a, torch.Tensor) else a
-                for a in args
-            ]
-            a, b = args[-2], args[-1]  # the two factors (addmm / baddbmm: bias first)
-            flops = 2 * a.numel() * b.shape[-1]
-            self.calls.append((func, layouts, kwargs, flops))
-        return func(*args, **kwargs)
-
-
-def _operand(layout):
-    """A random tensor with a recorded ``(shape, stride, dtype)`` (a view of a flat
-    buffer just long enough for it: transposed and broadcast layouts included)."""
-    if not isinstance(layout, tuple):
-        return layout
-    shape, stride, dtype = layout
-    size = 1 + sum((n - 1) * st for n, st in zip(shape, stride, strict=True))
-    return torch.randn(size, dtype=dtype).as_strided(shape, stride)
-
-
 def cheapest_call_us(n: int = 20_000, rounds: int = 5) -> float:
     """Microseconds of about the cheapest ATen call Python can make: an in-place add on a
     one-element tensor (median of ``rounds`` loops of ``n``)."""
@@ -149,26 +112,21 @@ def cheapest_call_us(n: int = 20_000, rounds: int = 5) -> float:
 
 
 def matmul_floor(run, steps: int, rounds: int = 7) -> dict:
-    """``run()`` (``steps`` steps) under :class:`_RecordMatmuls`, then the recorded matmuls
-    of one step replayed back to back: ``{"calls", "other_calls", "gflop", "ms"}`` per step
-    (``ms``: median of ``rounds`` timed replays of ``steps`` steps each)."""
-    with _RecordMatmuls() as rec:
-        run()
-    calls = rec.calls[: len(rec.calls) // steps]  # one step's worth
-    replay = [(func, [_operand(x) for x in layouts], kw) for func, layouts, kw, _ in calls]
-    for func, args, kw in replay:  # warm-up
-        func(*args, **kw)
+    """``run()`` (``steps`` steps) recorded (:func:`update_throughput.record_matmuls`),
+    then one step's matmuls replayed back to back: ``{"calls", "other_calls", "gflop",
+    "ms"}`` per step (``ms``: median of ``rounds`` timed replays of ``steps`` steps each)."""
+    rec = record_matmuls(run, steps)
+    rec.replay()  # warm-up
     times = []
     for _ in range(rounds):
         start = time.perf_counter()
         for _ in range(steps):
-            for func, args, kw in replay:
-                func(*args, **kw)
+            rec.replay()
         times.append((time.perf_counter() - start) / steps)
     return {
-        "calls": len(calls),
-        "other_calls": (rec.total - len(rec.calls)) // steps,
-        "gflop": sum(c[3] for c in calls) / 1e9,
+        "calls": rec.calls,
+        "other_calls": rec.other_calls,
+        "gflop": rec.flops / 1e9,
         "ms": sorted(times)[rounds // 2] * 1e3,
     }
 

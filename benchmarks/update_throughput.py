@@ -12,7 +12,9 @@ Measured, in this order:
    a plain-PyTorch DDPG, TorchRL's stock ``DDPGLoss``, the recipe's ``ddpg``, ``steve``
    and ``rave`` (world-model step + K critics + actor + soft target update, exactly the
    recipe's ``WorldModelTrainer.update`` / ``agent_update``) and the same RAVE update in
-   plain PyTorch (``plain_rave.py``); and the value target alone;
+   plain PyTorch (``plain_rave.py``); the matmul kernels of our ``ddpg`` and ``rave``
+   updates alone, recorded and replayed back to back (a floor under any implementation
+   of them, :func:`record_matmuls`); and the value target alone;
    malloc is set up as the recipe sets it (``keep_freed_memory``; ``--default-malloc``
    leaves it alone);
 3. the paper's row: seconds for 500 batches of 512 at the paper's sizes (``preset=paper``),
@@ -47,6 +49,7 @@ from hydra import compose, initialize_config_dir
 from plain_rave import PlainRAVE
 from tensordict import TensorDict
 from torch import nn
+from torch.utils._python_dispatch import TorchDispatchMode
 from torch.utils.flop_counter import FlopCounterMode
 from torchrl.data import Bounded
 from torchrl.modules import MLP, Actor, ValueOperator
@@ -172,6 +175,70 @@ def matmul_peak(device: torch.device, sizes=None, seconds: float = 3.0) -> float
             sync(device)
             best = max(best, 3 * 2 * size**3 / (time.perf_counter() - t) / 1e9)
     return best
+
+
+_GEMMS = ("mm", "addmm", "bmm", "baddbmm")
+
+
+class _RecordMatmuls(TorchDispatchMode):
+    """Records each matmul kernel call: ``(op, operand layouts, keyword args, FLOPs)``;
+    counts every ATen call in ``total``."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.calls: list[tuple] = []
+        self.total = 0
+
+    def __torch_dispatch__(self, func, types, args=(), kwargs=None):
+        kwargs = kwargs or {}
+        self.total += 1
+        if func.overloadpacket.__name__ in _GEMMS and not kwargs.get("out"):
+            layouts = [
+                (tuple(a.shape), a.stride(), a.dtype) if isinstance(a, torch.Tensor) else a
+                for a in args
+            ]
+            a, b = args[-2], args[-1]  # the two factors (addmm / baddbmm: bias first)
+            flops = 2 * a.numel() * b.shape[-1]
+            self.calls.append((func, layouts, kwargs, flops))
+        return func(*args, **kwargs)
+
+
+def _operand(layout, device=None):
+    """A random tensor with a recorded ``(shape, stride, dtype)`` (a view of a flat
+    buffer just long enough for it: transposed and broadcast layouts included)."""
+    if not isinstance(layout, tuple):
+        return layout
+    shape, stride, dtype = layout
+    size = 1 + sum((n - 1) * st for n, st in zip(shape, stride, strict=True))
+    return torch.randn(size, dtype=dtype, device=device).as_strided(shape, stride)
+
+
+class RecordedMatmuls:
+    """One step's matmul kernels, recorded by :func:`record_matmuls`: ``replay()`` calls
+    exactly them again, back to back, on random operands of the recorded layouts."""
+
+    def __init__(self, calls: list[tuple], other_calls: int, device=None) -> None:
+        self.calls, self.other_calls = len(calls), other_calls
+        self.flops = sum(c[3] for c in calls)
+        self._replay = [
+            (func, [_operand(x, device) for x in layouts], kw) for func, layouts, kw, _ in calls
+        ]
+
+    def replay(self, batch=None) -> None:
+        for func, args, kw in self._replay:
+            func(*args, **kw)
+
+
+def record_matmuls(run: Callable[[], object], steps: int = 1, device=None) -> RecordedMatmuls:
+    """Runs ``run()`` (``steps`` steps of a workload) and keeps one step's matmul kernels
+    (``mm``, ``addmm``, ``bmm``, ``baddbmm``; forward and backward, with each operand's
+    shape and stride) and its number of other ATen calls. Replayed back to back they are
+    a floor under the step's time: no implementation that does these products with these
+    kernels is faster, and the replay's operands even stay warm in cache."""
+    with _RecordMatmuls() as rec:
+        run()
+    per_step = len(rec.calls) // steps
+    return RecordedMatmuls(rec.calls[:per_step], (rec.total - len(rec.calls)) // steps, device)
 
 
 # ------------------------------------------------------------------- the workloads
@@ -345,6 +412,11 @@ def section_default(device, seconds, peak, compiled: str | None = None) -> dict:
     for algo in ("ddpg", "steve", "rave"):
         cases.append(Case(f"ours: {algo}", recipe_update(algo, [], device)[0], data))
     cases.append(Case("plain PyTorch RAVE", plain_rave_update(device), data))
+    for algo in ("ddpg", "rave"):  # the floor: exactly these updates' matmul kernels
+        step = recipe_update(algo, [], device)[0]
+        step(data[0])  # optimiser states exist, as in the timed updates
+        floor = record_matmuls(lambda step=step: step(data[1]), device=device)
+        cases.append(Case(f"matmuls alone: {algo}", floor.replay, data))
     for algo in ("ddpg", "steve", "rave"):
         step = recipe_update(algo, [], device, target_only=True)[0]
         cases.append(Case(f"target only: {algo}", step, data))
@@ -388,6 +460,8 @@ def section_default(device, seconds, peak, compiled: str | None = None) -> dict:
         "ours rave / plain RAVE (target only)": t["target only: rave"]
         / t["target only: plain RAVE"],
         "plain RAVE / plain DDPG": t["plain PyTorch RAVE"] / t["plain PyTorch DDPG"],
+        "ours rave / its matmuls alone": t["ours: rave"] / t["matmuls alone: rave"],
+        "ours ddpg / its matmuls alone": t["ours: ddpg"] / t["matmuls alone: ddpg"],
     }
     if compiled:
         ratios.update(
@@ -482,21 +556,34 @@ PAPER_ROWS = (
 )
 
 
+SCALING_BASE = {"N": 4, "K": 4, "H": 3, "batch": 128}
+# K starts at 2: RAVE refuses one critic (its inverse-variance mix would be TD(0))
+SCALING_GRID = {
+    "N": [1, 2, 4, 8],
+    "K": [2, 3, 4, 8],
+    "H": [0, 1, 3, 6],
+    "batch": [64, 128, 256, 512],
+}
+
+
+def scaling_overrides(point: dict) -> list[str]:
+    """The recipe's config overrides for one scaling point ``{"N", "K", "H", "batch"}``."""
+    return [
+        f"world_model.num_models={point['N']}",
+        f"network.num_critics={point['K']}",
+        f"estimator.horizon={point['H']}",
+        f"replay_buffer.batch_size={point['batch']}",
+    ]
+
+
 def section_scaling(device, seconds) -> list[dict]:
     """One RAVE update (full) as one of N, K, H_max, batch grows from the default."""
-    base = {"N": 4, "K": 4, "H": 3, "batch": 128}
-    grid = {"N": [1, 2, 4, 8], "K": [1, 2, 4, 8], "H": [0, 1, 3, 6], "batch": [64, 128, 256, 512]}
+    base, grid = SCALING_BASE, SCALING_GRID
     cases, meta = [], []
     for knob, values in grid.items():
         for v in values:
             p = {**base, knob: v}
-            overrides = [
-                f"world_model.num_models={p['N']}",
-                f"network.num_critics={p['K']}",
-                f"estimator.horizon={p['H']}",
-                f"replay_buffer.batch_size={p['batch']}",
-            ]
-            step = recipe_update("rave", overrides, device)[0]
+            step = recipe_update("rave", scaling_overrides(p), device)[0]
             cases.append(Case(f"{knob}={v}", step, batches(p["batch"], device, count=4)))
             meta.append((knob, v, p))
     for case in cases:

@@ -77,10 +77,26 @@ def test_runs_and_writes_ratios(tmp_path):
         ("target only: rave", "target only: plain RAVE"),
     ):
         assert rows[plain]["gflop_per_update"] == rows[ours]["gflop_per_update"]
+    # the floor rows replay exactly the updates' matmuls
+    for algo in ("ddpg", "rave"):
+        floor = rows[f"matmuls alone: {algo}"]
+        assert floor["gflop_per_update"] == rows[f"ours: {algo}"]["gflop_per_update"]
     # the same networks: our DDPG and the plain one do about the same arithmetic
     assert rows["ours: ddpg"]["gflop_per_update"] == pytest.approx(
         rows["plain PyTorch DDPG"]["gflop_per_update"], rel=0.15
     )
+
+
+def test_every_scaling_point_builds_a_rave_agent():
+    """The scaling table's grid holds only configurations the recipe accepts (it once
+    kept K = 1, which RAVE refuses, and the default command stopped there)."""
+    for knob, values in bench.SCALING_GRID.items():
+        assert bench.SCALING_BASE[knob] in values  # each knob's row has the default point
+        for v in values:
+            point = {**bench.SCALING_BASE, knob: v}
+            agent, cfg, _ = bench.recipe_agent("rave", bench.scaling_overrides(point), "cpu")
+            assert agent.world_model.num_models == point["N"]
+            assert cfg.network.num_critics == point["K"]
 
 
 def test_plain_rave_is_the_recipes_rave_update():
@@ -213,7 +229,7 @@ def test_floor_records_forward_and_backward_matmuls_with_their_layouts():
             (x @ w).sum().backward()
             torch.baddbmm(bias, p, q)
 
-    with profile_update._RecordMatmuls() as rec:
+    with bench._RecordMatmuls() as rec:
         run()
     ops = [(c[0].overloadpacket.__name__, c[3]) for c in rec.calls[:3]]
     assert ops == [("mm", 2 * 8 * 4 * 3), ("mm", 2 * 4 * 8 * 3), ("baddbmm", 2 * 2 * 6 * 7 * 5)]
@@ -232,9 +248,8 @@ def test_floor_records_forward_and_backward_matmuls_with_their_layouts():
 def test_floor_operands_have_the_recorded_layout(layout):
     """Replayed operands keep a recorded shape and stride: contiguous, transposed,
     broadcast (stride 0) and a strided slice."""
-    import profile_update
 
-    t = profile_update._operand((*layout, torch.float32))
+    t = bench._operand((*layout, torch.float32))
     assert (tuple(t.shape), t.stride()) == layout
 
 
