@@ -15,9 +15,9 @@ from torchrl_rave.training.config import check_config
 
 # allocates and frees 2 MiB temporaries 100 times, then counts the page faults of 100 more.
 # "plain" holds glibc's documented default thresholds fixed (128 KiB each; setting them
-# turns off glibc's dynamic adjustment): left dynamic, they rise after an early large free
-# or not, depending on the heap's layout: left dynamic, a plain process faulted 1,500 to
-# 50,000 pages over the loop in a dozen local runs, and none at all in one CI run.
+# turns off glibc's dynamic adjustment). Left dynamic, they rise after an early large free
+# or not, depending on the heap's layout: a plain process faulted 1,500 to 50,000 pages
+# over the loop in a dozen local runs, and none at all in one CI run.
 FAULTS = """
 import ctypes, resource, sys, torch
 from torchrl_rave.training.memory import M_MMAP_THRESHOLD, M_TRIM_THRESHOLD, keep_freed_memory
