@@ -39,7 +39,7 @@ import torch
 from torch.nn import functional as F
 from torch.profiler import ProfilerActivity, profile
 from torch.utils._python_dispatch import TorchDispatchMode
-from update_throughput import batches, recipe_update, record_matmuls
+from update_throughput import Case, batches, measure, recipe_update, record_matmuls
 
 from torchrl_rave.training.memory import keep_freed_memory
 
@@ -111,23 +111,19 @@ def cheapest_call_us(n: int = 20_000, rounds: int = 5) -> float:
     return sorted(times)[rounds // 2]
 
 
-def matmul_floor(run, steps: int, rounds: int = 7) -> dict:
+def matmul_floor(run, steps: int, seconds: float = 1.0) -> dict:
     """``run()`` (``steps`` steps) recorded (:func:`update_throughput.record_matmuls`),
-    then one step's matmuls replayed back to back: ``{"calls", "other_calls", "gflop",
-    "ms"}`` per step (``ms``: median of ``rounds`` timed replays of ``steps`` steps each)."""
+    then one step's matmuls replayed back to back and timed as ``update_throughput``
+    times its workloads (median of interleaved rounds over about ``seconds``):
+    ``{"calls", "other_calls", "gflop", "ms"}`` per step."""
     rec = record_matmuls(run, steps)
-    rec.replay()  # warm-up
-    times = []
-    for _ in range(rounds):
-        start = time.perf_counter()
-        for _ in range(steps):
-            rec.replay()
-        times.append((time.perf_counter() - start) / steps)
+    case = Case("matmuls alone", rec.replay, [None])
+    measure([case], torch.device("cpu"), seconds)
     return {
-        "calls": rec.calls,
+        "calls": rec.kernels,
         "other_calls": rec.other_calls,
         "gflop": rec.flops / 1e9,
-        "ms": sorted(times)[rounds // 2] * 1e3,
+        "ms": case.seconds * 1e3,
     }
 
 

@@ -215,10 +215,12 @@ def _operand(layout, device=None):
 
 class RecordedMatmuls:
     """One step's matmul kernels, recorded by :func:`record_matmuls`: ``replay()`` calls
-    exactly them again, back to back, on random operands of the recorded layouts."""
+    exactly them again, back to back, on random operands of the recorded layouts (it
+    takes and ignores a batch, so that it can be a :class:`Case`'s step). ``kernels`` and
+    ``other_calls`` count one step's matmul kernels and its other ATen calls."""
 
     def __init__(self, calls: list[tuple], other_calls: int, device=None) -> None:
-        self.calls, self.other_calls = len(calls), other_calls
+        self.kernels, self.other_calls = len(calls), other_calls
         self.flops = sum(c[3] for c in calls)
         self._replay = [
             (func, [_operand(x, device) for x in layouts], kw) for func, layouts, kw, _ in calls

@@ -235,10 +235,25 @@ def test_floor_records_forward_and_backward_matmuls_with_their_layouts():
     assert ops == [("mm", 2 * 8 * 4 * 3), ("mm", 2 * 4 * 8 * 3), ("baddbmm", 2 * 2 * 6 * 7 * 5)]
     # the backward product reads the input transposed: [4, 8] with strides (1, 4)
     assert rec.calls[1][1][0][:2] == ((4, 8), (1, 4))
-    floor = profile_update.matmul_floor(run, steps=3, rounds=3)
+    floor = profile_update.matmul_floor(run, steps=3, seconds=0.1)
     assert floor["calls"] == 3 and floor["ms"] > 0
     assert floor["gflop"] == (192 + 192 + 840) / 1e9
-    assert floor["other_calls"] > 0  # sum, its backward's ones and expand, the transpose
+
+
+def test_record_matmuls_keeps_one_steps_kernels_and_counts_its_other_calls():
+    """Over 4 steps of one ``mm`` and one ``relu``: one kernel and one other call per step,
+    and the replay calls that kernel again (counted by a second recording)."""
+    a, b = torch.randn(3, 4), torch.randn(4, 2)
+
+    def run():
+        for _ in range(4):
+            torch.mm(a, b)
+            torch.relu(a)
+
+    rec = bench.record_matmuls(run, steps=4)
+    assert (rec.kernels, rec.other_calls, rec.flops) == (1, 1, 2 * 3 * 4 * 2)
+    again = bench.record_matmuls(rec.replay)
+    assert (again.kernels, again.other_calls) == (1, 0)
 
 
 @pytest.mark.parametrize(
@@ -263,7 +278,7 @@ def test_floor_of_the_rave_update_counts_every_flop_of_the_flop_counter():
     step(data[0])
     case = bench.Case("rave", step, data)
     case.count_flops()
-    floor = profile_update.matmul_floor(lambda: step(data[1]), steps=1, rounds=1)
+    floor = profile_update.matmul_floor(lambda: step(data[1]), steps=1, seconds=0.1)
     assert floor["gflop"] * 1e9 == pytest.approx(case.flops, rel=0, abs=0.5)
 
 
