@@ -48,9 +48,12 @@ def run_dir(out: Path, env: str, variant: str, seed: int) -> Path:
     return out / env / variant / f"seed{seed}"
 
 
-def cell(out: Path, env: str, algorithm: str, seed: int, frames: int, extra=(), variant=None):
+def cell(
+    out: Path, env: str, algorithm: str, seed: int, frames: int, extra=(), variant=None, label=None
+):
     """The grid cell of one (env, algorithm, seed); ``variant`` names its directory and
-    experiment when it is not the algorithm (the alpha ablation's constant-alpha runs)."""
+    experiment when it is not the algorithm (the alpha ablation's constant-alpha runs),
+    ``label`` the env's directory when it is not the env id (a study's task variants)."""
     variant = variant or algorithm
     overrides = (
         f"algorithm={algorithm}",
@@ -59,7 +62,7 @@ def cell(out: Path, env: str, algorithm: str, seed: int, frames: int, extra=(), 
         f"logger.exp_name={variant}",
         *extra,
     )
-    return Cell(run_dir(out, env, variant, seed), frames, overrides)
+    return Cell(run_dir(out, label or env, variant, seed), frames, overrides)
 
 
 def run(cells: list[Cell], jobs: int) -> None:

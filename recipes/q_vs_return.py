@@ -24,6 +24,7 @@ import numpy as np
 import torch
 
 from torchrl_rave.training.agent import critic_mean, load_agent, make_env
+from torchrl_rave.training.evaluate import discounted_returns, value_error
 
 
 def load_run(run_dir: Path):
@@ -31,15 +32,6 @@ def load_run(run_dir: Path):
     from its latest checkpoint."""
     cfg, agent = load_agent(run_dir)
     return cfg, make_env(cfg, torch.device("cpu")), agent.actor, agent.loss
-
-
-def discounted_returns(rewards: np.ndarray, gamma: float) -> np.ndarray:
-    out = np.zeros_like(rewards, dtype=np.float64)
-    running = 0.0
-    for t in range(len(rewards) - 1, -1, -1):
-        running = rewards[t] + gamma * running
-        out[t] = running
-    return out
 
 
 @torch.no_grad()
@@ -55,7 +47,8 @@ def collect(
     with set_exploration_type(ExplorationType.DETERMINISTIC):
         for _ in range(episodes):
             rollout = env.rollout(1_000_000, actor, break_when_any_done=True)
-            rewards = rollout["next", "reward"].squeeze(-1).double().numpy()
+            # the env's rewards are scaled for learning, like the critic: both in env units
+            rewards = rollout["next", "reward"].squeeze(-1).double().numpy() / cfg.env.reward_scale
             g = discounted_returns(rewards, cfg.optim.gamma)
             q = critic_mean(loss, rollout).double().numpy() / cfg.env.reward_scale
             keep = len(g)
@@ -67,15 +60,12 @@ def collect(
 
 
 def statistics(true: np.ndarray, pred: np.ndarray) -> dict[str, float]:
-    err = pred - true
-    corr = (
-        float(np.corrcoef(true, pred)[0, 1]) if true.std() > 0 and pred.std() > 0 else float("nan")
-    )
+    s = value_error(pred, true)
     return {
-        "states": len(true),
-        "bias": float(err.mean()),
-        "rmse": float(np.sqrt((err**2).mean())),
-        "correlation": corr,
+        "states": int(s["eval/q_states"]),
+        "bias": s["eval/q_bias"],
+        "rmse": s["eval/q_rmse"],
+        "correlation": s["eval/q_corr"],
     }
 
 

@@ -55,7 +55,7 @@ from torchrl_rave.training.config import (
     replay_buffer_size,
     resolve_config,
 )
-from torchrl_rave.training.evaluate import evaluate, make_logger
+from torchrl_rave.training.evaluate import evaluate_agent, make_logger
 from torchrl_rave.training.update import make_agent_step, ppo_update
 
 CONFIG = Path(__file__).with_name("config.yaml")
@@ -184,7 +184,7 @@ def _train(cfg: DictConfig, run_dir: str) -> dict[str, float]:
                     t_eval = time.perf_counter()
                     eval_env.set_seed(cfg.env.seed + 1_000_003 + frames_now)
                     try:
-                        last_eval = evaluate(eval_env, agent.actor, cfg.eval.episodes)
+                        last_eval = evaluate_agent(cfg, eval_env, agent)
                     except NonFiniteEnvOutput as err:
                         where = stop_run(collector, save_checkpoint)
                         raise NonFiniteEnvOutput(
@@ -221,7 +221,7 @@ def _train(cfg: DictConfig, run_dir: str) -> dict[str, float]:
         return last_eval
     if not last_eval:  # a run resumed from its final checkpoint
         eval_env.set_seed(cfg.env.seed + 1_000_003 + counters["frames"])
-        last_eval = evaluate(eval_env, agent.actor, cfg.eval.episodes)
+        last_eval = evaluate_agent(cfg, eval_env, agent)
     elapsed = time.perf_counter() - start
     print(
         f"{cfg.algorithm} on {cfg.env.name}, seed {cfg.env.seed}: {counters['frames']} frames, "

@@ -30,29 +30,17 @@ from pathlib import Path
 
 import numpy as np
 from compare import REFERENCE, cell
-from omegaconf import OmegaConf
 from plot_curves import seeds, study_figures
 
 from torchrl_rave.training.checkpoint import RunCheckpoint
 from torchrl_rave.training.runs import Cell, GridStopped, launch_grid, read_scalar, train_seconds
 from torchrl_rave.training.stats import difference95, interval95, wilson_interval
+from torchrl_rave.training.studies import load_study, result_dir, tasks
 
 ROOT = Path(__file__).resolve().parents[1]
 RECIPE = Path(__file__).resolve().parent / "rave_mujoco.py"
 DEFAULT = Path(__file__).resolve().parent / "study" / "mujoco100k.yaml"
 RAVE_DIAGNOSTICS = ["alpha", "wm_transition_mse", *(f"horizon_weight_h{h}" for h in range(4))]
-
-
-def load_study(path: Path):
-    study = OmegaConf.load(path)
-    for key in ("name", "tasks", "algorithms", "seeds", "frames"):
-        if key not in study:
-            raise ValueError(f"{path}: the study has no {key!r}")
-    return study
-
-
-def result_dir(results: Path, study, task: str, algorithm: str, seed: int) -> Path:
-    return results / study.name / task / algorithm / f"seed{seed}"
 
 
 def git(repo: Path, *args: str) -> str:
@@ -105,17 +93,20 @@ def interrupted(c: Cell) -> bool:
 
 def missing_cells(study, results: Path, out: Path) -> dict[Cell, Path]:
     """The cells without a ``cell.json``, in the order they run: interrupted ones first
-    (they resume), then seed by seed within a task, every algorithm's seed 0 before any
-    seed 1, so that a study cut short by the budget still covers every algorithm."""
+    (they resume), then seed by seed, every task's and algorithm's seed 0 before any
+    seed 1, so that a study cut short by the budget still covers every task and
+    algorithm."""
     cells = {}
-    for task in study.tasks:
-        for seed in study.seeds:
+    for seed in study.seeds:
+        for task in tasks(study):
             for algorithm in study.algorithms:
-                dest = result_dir(results, study, task, algorithm, seed)
+                dest = result_dir(results, study, task.label, algorithm, seed)
                 if (dest / "cell.json").exists():
                     continue  # done in an earlier session
-                extra = list(study.get("overrides", []))
-                cells[cell(out / study.name, task, algorithm, seed, study.frames, extra)] = dest
+                extra = [*study.get("overrides", []), *task.overrides]
+                run = cell(out / study.name, task.env, algorithm, seed, study.frames, extra,
+                           label=task.label)  # fmt: skip
+                cells[run] = dest
     order = sorted(cells, key=lambda c: not interrupted(c))  # stable: the order above otherwise
     return {c: cells[c] for c in order}
 
@@ -188,7 +179,8 @@ def report(args) -> str:
         "| --- " * (5 + len(at) + with_ref) + "|",
     ]
     cost, versus = [], []  # the cells' own minutes; RAVE minus each other algorithm
-    for task in study.tasks:
+    for entry in tasks(study):
+        task = entry.label
         curves, diag, falling, at_frames = {}, {}, {}, {}
         for algorithm in study.algorithms:
             runs = group(study, args.results, task, algorithm)
@@ -198,7 +190,11 @@ def report(args) -> str:
                     f"| {task} | {algorithm} | {len(minutes)} | {min(minutes):.0f} | "
                     f"{max(minutes):.0f} | {sum(minutes) / 60:.1f} |"
                 )
-            ref = REFERENCE.get(task.split("-")[0], {}).get(algorithm, "")
+            ref = (
+                REFERENCE.get(entry.env.split("-")[0], {}).get(algorithm, "")
+                if entry.reference
+                else ""
+            )
             ref = (f" {ref.split(' / ')[0]} |" if ref else "  |") if with_ref else ""
             if not runs:
                 lines.append(f"| {task} | {algorithm} | 0 |" + " n/a |" * (len(at) + 2) + ref)

@@ -81,6 +81,15 @@ class TestAlgorithms:
         assert np.isfinite(results["eval/return"])
         evals = read_scalar(tmp_path, "eval/return", algorithm)
         assert [step for step, _ in evals] == [200, 400]
+        # the value error of every evaluation: random-ish Hopper policies fall within the
+        # 1,000-step limit, so every state of the 2 episodes counts
+        lengths = read_scalar(tmp_path, "eval/episode_length", algorithm)
+        states = read_scalar(tmp_path, "eval/q_states", algorithm)
+        assert [v for _, v in states] == [2 * v for _, v in lengths]
+        for metric in ("q_bias", "q_rmse"):
+            assert all(
+                np.isfinite(v) for _, v in read_scalar(tmp_path, f"eval/{metric}", algorithm)
+            )
         critic = read_scalar(tmp_path, "train/loss_critic", algorithm)
         assert all(np.isfinite(v) for _, v in critic)
         if algorithm in ("steve", "rave", "rave_constant"):

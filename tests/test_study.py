@@ -172,7 +172,7 @@ def test_report_sums_each_cells_own_seconds(tmp_path):
     assert "| Hopper-v5 | ddpg | 2 | 34 | 39 | 1.2 |" in table
 
 
-def test_missing_cells_run_interrupted_first_then_seed_by_seed(tmp_path):
+def test_missing_cells_run_interrupted_first_then_seed_by_seed_across_tasks(tmp_path):
     config = write_study(tmp_path, tasks=["Hopper-v5", "Walker2d-v5"], seeds=[0, 1])
     results, out = tmp_path / "results", tmp_path / "runs"
     write_cell(results, "rave", 0, {"eval/return": [(200, 1.0)]})  # Hopper rave seed 0: done
@@ -185,9 +185,40 @@ def test_missing_cells_run_interrupted_first_then_seed_by_seed(tmp_path):
     assert order == [
         "Walker2d-v5/ddpg/seed1",
         "Hopper-v5/ddpg/seed0",
-        "Hopper-v5/rave/seed1",
-        "Hopper-v5/ddpg/seed1",
         "Walker2d-v5/rave/seed0",
         "Walker2d-v5/ddpg/seed0",
+        "Hopper-v5/rave/seed1",
+        "Hopper-v5/ddpg/seed1",
         "Walker2d-v5/rave/seed1",
     ]
+
+
+def test_the_stochastic_study_has_its_36_cells_with_their_noise(tmp_path):
+    config = Path(study.__file__).parent / "study" / "stochastic100k.yaml"
+    loaded = study.load_study(config)
+    cells = study.missing_cells(loaded, tmp_path / "results", tmp_path / "runs")
+    assert len(cells) == 36
+    by_dir = {"/".join(c.run_dir.parts[-3:]): c for c in cells}
+    noisy = by_dir["Hopper-v5-noise0.3/mve/seed2"]
+    assert "env.name=Hopper-v5" in noisy.overrides and "env.action_noise=0.3" in noisy.overrides
+    assert noisy.frames == 100_000 and "eval.episodes=10" in noisy.overrides
+    assert "env.action_noise=0" in by_dir["Hopper-v5-noise0/mve/seed2"].overrides
+    assert cells[noisy] == tmp_path / "results/stochastic100k/Hopper-v5-noise0.3/mve/seed2"
+    # seed 0 of both noise levels and all six algorithms come first
+    first = ["/".join(c.run_dir.parts[-3:]) for c in list(cells)[:12]]
+    assert all(name.endswith("seed0") for name in first)
+    assert {name.split("/")[0] for name in first} == {"Hopper-v5-noise0", "Hopper-v5-noise0.3"}
+    # every cell's overrides make a valid recipe config
+    from test_recipe import make_cfg
+
+    from torchrl_rave.training.config import check_config
+
+    check_config(make_cfg(*noisy.overrides, f"collector.total_frames={noisy.frames}"))
+
+
+def test_task_labels_must_differ(tmp_path):
+    twice = {"label": "a", "env": "Hopper-v5"}
+    with pytest.raises(ValueError, match="labels repeat"):
+        study.load_study(write_study(tmp_path, tasks=[twice, twice]))
+    with pytest.raises(ValueError, match="label and an env"):
+        study.load_study(write_study(tmp_path, tasks=[{"env": "Hopper-v5"}]))

@@ -20,6 +20,7 @@ from torchrl.data import LazyTensorStorage, SamplerWithoutReplacement, TensorDic
 from torchrl.envs import (
     DoubleToFloat,
     GymEnv,
+    GymWrapper,
     RewardScaling,
     RewardSum,
     StepCounter,
@@ -36,6 +37,7 @@ from torchrl.objectives import (
     ValueEstimators,
 )
 
+from torchrl_rave.envs.action_noise import ActuatorNoise
 from torchrl_rave.envs.families import import_env_family
 from torchrl_rave.modules import EpsilonGaussianModule, WorldModelEnsemble
 from torchrl_rave.objectives import (
@@ -55,8 +57,10 @@ from torchrl_rave.training.config import (
 
 __all__ = [
     "Agent",
+    "bootstrap_value",
     "critic_loss_key",
     "critic_mean",
+    "critic_values",
     "load_agent",
     "load_policy",
     "make_agent",
@@ -166,11 +170,19 @@ def load_policy(
 
 def make_env(cfg: DictConfig, device: torch.device) -> TransformedEnv:
     """The training (or evaluation) env: float32, step counter, episode return, reward
-    scaling. Optional families (PyBullet ids) are registered first, here as in workers."""
+    scaling; with ``env.action_noise > 0`` its transitions are made stochastic by
+    :class:`~torchrl_rave.envs.ActuatorNoise`. Optional families (PyBullet ids) are
+    registered first, here as in workers."""
+    import gymnasium as gym
+
     import_env_family(cfg.env.name.split(":")[-1])
-    env = TransformedEnv(
-        GymEnv(cfg.env.name, device=device, **(cfg.env.kwargs or {})), DoubleToFloat()
-    )
+    kwargs = dict(cfg.env.kwargs or {})
+    noise = float(cfg.env.get("action_noise", 0.0))  # runs saved before the key: none
+    if noise > 0:
+        base = GymWrapper(ActuatorNoise(gym.make(cfg.env.name, **kwargs), noise), device=device)
+    else:  # exactly the env of a run without the key
+        base = GymEnv(cfg.env.name, device=device, **kwargs)
+    env = TransformedEnv(base, DoubleToFloat())
     env.append_transform(StepCounter())
     env.append_transform(RewardSum())  # before the scaling: returns stay in env units
     if cfg.env.reward_scale != 1.0:
@@ -371,14 +383,34 @@ def make_replay_buffer(cfg: DictConfig, device) -> TensorDictReplayBuffer:
     )
 
 
-def critic_mean(loss, td: TensorDictBase) -> torch.Tensor:
-    """``Q(s, a)`` ``[*B]`` averaged over the loss's stacked critics (``[K, ...]`` params)."""
+def critic_values(loss, td: TensorDictBase) -> torch.Tensor:
+    """``Q_k(s, a)`` ``[K, *B]`` of each of the loss's stacked critics (``[K, ...]``
+    params) at ``td``'s observation and action; for ppo ``V(s)`` ``[1, *B]``."""
     params, network = critic_params(loss)
+    if isinstance(loss, ClipPPOLoss):
+        with params.to_module(network):
+            return network(td.clone())["state_value"].squeeze(-1).unsqueeze(0)
     values = []
     for k in range(params.batch_size[0]):
         with params[k].to_module(network):
             values.append(network(td.clone())["state_action_value"].squeeze(-1))
-    return torch.stack(values).mean(0)
+    return torch.stack(values)
+
+
+def critic_mean(loss, td: TensorDictBase) -> torch.Tensor:
+    """``Q(s, a)`` ``[*B]`` averaged over the loss's stacked critics (``[K, ...]`` params)."""
+    return critic_values(loss, td).mean(0)
+
+
+def bootstrap_value(loss, td: TensorDictBase) -> torch.Tensor:
+    """The critics' estimate ``[*B]`` of the return from ``td``'s state and action, read the
+    way each loss reads its critics when it bootstraps: the mean over the K critics for the
+    K-critic DDPG loss (the value-expansion candidates average them; K = 1 for ddpg), the
+    minimum over the critics for TD3 and SAC (clipped double Q; SAC's critics also carry
+    the entropy bonus of later steps, which a return of rewards does not), and ``V(s)``
+    for PPO (the value of its stochastic policy)."""
+    values = critic_values(loss, td)
+    return values.min(0)[0] if isinstance(loss, (TD3Loss, SACLoss)) else values.mean(0)
 
 
 @torch.no_grad()

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 import os
 from dataclasses import dataclass
 
@@ -154,6 +155,16 @@ def check_config(cfg: DictConfig) -> Algorithm:
         _require(float(value) > 0, key, value, "a number > 0")
     _require(float(cfg.optim.utd_ratio) > 0, "optim.utd_ratio", cfg.optim.utd_ratio, "> 0")
     _require(float(cfg.env.reward_scale) > 0, "env.reward_scale", cfg.env.reward_scale, "> 0")
+    noise = cfg.env.get("action_noise", 0.0)
+    _require(
+        isinstance(noise, (int, float))
+        and not isinstance(noise, bool)
+        and math.isfinite(noise)
+        and noise >= 0,
+        "env.action_noise",
+        noise,
+        "a finite number >= 0 (the actuator noise's std in half action ranges; 0: none)",
+    )
     _require(0 <= float(cfg.optim.gamma) <= 1, "optim.gamma", cfg.optim.gamma, "in [0, 1]")
     _require(0 < float(cfg.optim.tau) <= 1, "optim.tau", cfg.optim.tau, "in (0, 1]")
     _require(float(cfg.estimator.alpha) >= 0, "estimator.alpha", cfg.estimator.alpha, ">= 0")
@@ -369,6 +380,7 @@ def num_critics(cfg: DictConfig, algo: Algorithm) -> int:
 FIXED_ON_RESUME = [
     "algorithm",
     "env.name",
+    "env.action_noise",
     "network",
     *WORLD_MODEL_SIZES,
     "ppo.rollout_frames",

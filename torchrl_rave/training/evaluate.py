@@ -1,13 +1,17 @@
-"""Evaluation episodes and the logger of a run."""
+"""Evaluation episodes (return, falling rate, the critics' value error) and the logger of a run."""
 
 from __future__ import annotations
+
+from collections.abc import Callable
 
 import numpy as np
 import torch
 from omegaconf import DictConfig, OmegaConf
+from tensordict import TensorDictBase
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 from torchrl.record.loggers import Logger, get_logger
 
+from torchrl_rave.training.agent import bootstrap_value
 from torchrl_rave.training.collect import NonFiniteEnvOutput
 
 
@@ -28,11 +32,67 @@ def make_logger(cfg: DictConfig, run_dir: str, state: dict | None = None) -> Log
     )
 
 
+# A state counts in the value error once the return beyond the episode's time limit, which
+# its Monte-Carlo return lacks, is weighted below this (gamma ** (T - t) < 0.01).
+TRUNCATION_WEIGHT = 0.01
+
+
+def discounted_returns(rewards: np.ndarray, gamma: float) -> np.ndarray:
+    """``G_t = sum_{t' >= t} gamma^(t' - t) r_t'`` ``[T]`` of one episode's rewards ``[T]``."""
+    out = np.zeros(len(rewards), dtype=np.float64)
+    running = 0.0
+    for t in range(len(rewards) - 1, -1, -1):
+        running = rewards[t] + gamma * running
+        out[t] = running
+    return out
+
+
+def value_error_states(length: int, terminated: bool, gamma: float) -> np.ndarray:
+    """The steps ``t`` of an episode of ``length`` steps whose Monte-Carlo return is a fair
+    target for the critic: every step of an episode that terminated (nothing follows its
+    end), and of one cut by the time limit only the steps with ``gamma ** (length - t) <
+    TRUNCATION_WEIGHT`` (at gamma 0.99, the first ``length - 458`` steps)."""
+    steps = np.arange(length)
+    if terminated:
+        return steps
+    return steps[gamma ** (length - steps).astype(np.float64) < TRUNCATION_WEIGHT]
+
+
+def value_error(predicted: np.ndarray, returns: np.ndarray) -> dict[str, float]:
+    """``eval/q_bias`` (mean of predicted minus true), ``eval/q_rmse``, ``eval/q_corr``
+    (Pearson; NaN when either side is constant) and ``eval/q_states`` over paired
+    predictions and Monte-Carlo returns ``[n]`` (NaN statistics when ``n = 0``)."""
+    n = len(returns)
+    err = predicted - returns
+    ok = n > 1 and predicted.std() > 0 and returns.std() > 0
+    return {
+        "eval/q_bias": float(err.mean()) if n else float("nan"),
+        "eval/q_rmse": float(np.sqrt((err**2).mean())) if n else float("nan"),
+        "eval/q_corr": float(np.corrcoef(predicted, returns)[0, 1]) if ok else float("nan"),
+        "eval/q_states": float(n),
+    }
+
+
 @torch.no_grad()
-def evaluate(env, actor, episodes: int) -> dict[str, float]:
+def evaluate(
+    env,
+    actor,
+    episodes: int,
+    value: Callable[[TensorDictBase], torch.Tensor] | None = None,
+    gamma: float = 0.99,
+    reward_scale: float = 1.0,
+) -> dict[str, float]:
     """Deterministic-policy episodes: return mean/std, length, and the falling rate.
-    NaN/inf in an observation or reward raises :class:`NonFiniteEnvOutput`."""
-    returns, lengths, falls = [], [], []
+    NaN/inf in an observation or reward raises :class:`NonFiniteEnvOutput`.
+
+    With ``value`` (the critics' estimate ``[T]`` of the return from each step's state and
+    action, e.g. :func:`~torchrl_rave.training.agent.bootstrap_value`), the value error is
+    measured too (:func:`value_error`): at the steps :func:`value_error_states` keeps, the
+    estimate against the discounted Monte-Carlo return of the episode's own rewards with
+    ``gamma``, both divided by ``reward_scale`` (environment reward units). The actions
+    are the deterministic policy's, so the estimate is ``Q(s_t, pi(s_t))``.
+    """
+    returns, lengths, falls, predicted, true = [], [], [], [], []
     with set_exploration_type(ExplorationType.DETERMINISTIC):
         for _ in range(episodes):
             rollout = env.rollout(1_000_000, actor, break_when_any_done=True)
@@ -46,10 +106,33 @@ def evaluate(env, actor, episodes: int) -> dict[str, float]:
             lengths.append(rollout["next", "step_count"][-1].item())
             # terminated (fell) rather than truncated by the time limit
             falls.append(float(rollout["next", "terminated"][-1].item()))
+            if value is not None:
+                rewards = rollout["next", "reward"].reshape(-1).double().numpy() / reward_scale
+                keep = value_error_states(len(rewards), bool(falls[-1]), gamma)
+                q = value(rollout).reshape(-1).double().numpy() / reward_scale
+                predicted.append(q[keep])
+                true.append(discounted_returns(rewards, gamma)[keep])
     r = torch.tensor(returns)
-    return {
+    out = {
         "eval/return": r.mean().item(),
         "eval/return_std": r.std(unbiased=False).item(),
         "eval/episode_length": float(np.mean(lengths)),
         "eval/falling_rate": float(np.mean(falls)),
     }
+    if value is not None:
+        out.update(value_error(np.concatenate(predicted), np.concatenate(true)))
+    return out
+
+
+def evaluate_agent(cfg: DictConfig, env, agent) -> dict[str, float]:
+    """:func:`evaluate` of a recipe agent (:class:`~torchrl_rave.training.agent.Agent`):
+    ``cfg.eval.episodes`` episodes of its deterministic actor, with the value error of the
+    critics as its loss bootstraps from them, at the run's gamma and reward scale."""
+    return evaluate(
+        env,
+        agent.actor,
+        cfg.eval.episodes,
+        value=lambda td: bootstrap_value(agent.loss, td),
+        gamma=cfg.optim.gamma,
+        reward_scale=cfg.env.reward_scale,
+    )

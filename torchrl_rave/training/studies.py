@@ -1,0 +1,57 @@
+"""Studies: grids of recipe runs (tasks x algorithms x seeds at one frame budget) described
+by a YAML file (``recipes/study/<name>.yaml``), whose finished cells are kept under
+``results/<name>/<task>/<algorithm>/seed<k>/``."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+from omegaconf import DictConfig, OmegaConf
+
+__all__ = ["Task", "load_study", "result_dir", "tasks"]
+
+
+@dataclass(frozen=True)
+class Task:
+    """One task of a study: ``label`` names its results directory, ``env`` is the
+    recipe's ``env.name``, ``overrides`` go to its cells only (e.g. ``env.action_noise``),
+    and ``reference`` says whether published numbers for ``env`` apply to it."""
+
+    label: str
+    env: str
+    overrides: tuple[str, ...] = ()
+    reference: bool = True
+
+
+def tasks(study: DictConfig) -> list[Task]:
+    """A study's tasks: an entry is an env id, or a mapping with ``label``, ``env`` and
+    optional ``overrides`` and ``reference`` (which defaults to no overrides)."""
+    out = []
+    for entry in study.tasks:
+        if isinstance(entry, str):
+            out.append(Task(entry, entry))
+            continue
+        extra = tuple(entry.get("overrides") or ())
+        out.append(Task(entry.label, entry.env, extra, bool(entry.get("reference", not extra))))
+    return out
+
+
+def load_study(path: Path) -> DictConfig:
+    """A study file, checked: its keys, its task entries and their distinct labels."""
+    study = OmegaConf.load(path)
+    for key in ("name", "tasks", "algorithms", "seeds", "frames"):
+        if key not in study:
+            raise ValueError(f"{path}: the study has no {key!r}")
+    for entry in study.tasks:
+        if not isinstance(entry, str) and not {"label", "env"} <= set(entry):
+            raise ValueError(f"{path}: a task must be an env id or have a label and an env")
+    labels = [t.label for t in tasks(study)]
+    if len(set(labels)) != len(labels):
+        raise ValueError(f"{path}: task labels repeat: {labels}")
+    return study
+
+
+def result_dir(results: Path, study: DictConfig, task: str, algorithm: str, seed: int) -> Path:
+    """Where the finished cell of (task label, algorithm, seed) is kept."""
+    return results / study.name / task / algorithm / f"seed{seed}"
