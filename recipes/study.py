@@ -1,6 +1,7 @@
 """A multi-session study: run its missing cells, keep their metrics, and report.
 
 python recipes/study.py run --jobs 2 --commit      # the cells still missing, two at a time
+python recipes/study.py run --config recipes/study/a.yaml recipes/study/b.yaml  # a's, then b's
 python recipes/study.py report                     # tables and figures from results/ only
 
 To keep editing the project while cells run, run them from a frozen checkout of one commit
@@ -112,9 +113,15 @@ def missing_cells(study, results: Path, out: Path) -> dict[Cell, Path]:
 
 
 def run(args) -> None:
-    study = load_study(args.config)
-    cells = missing_cells(study, args.results, args.out)
-    print(f"{study.name}: {len(cells)} cells to go, {args.jobs} at a time", flush=True)
+    """The missing cells of every ``--config`` study, one queue in their order, sharing
+    ``--jobs`` slots; interrupted cells of any of them first."""
+    cells = {}
+    for config in args.config:
+        study = load_study(config)
+        todo = missing_cells(study, args.results, args.out)
+        print(f"{study.name}: {len(todo)} cells to go, {args.jobs} at a time", flush=True)
+        cells.update(todo)
+    cells = {c: cells[c] for c in sorted(cells, key=lambda c: not interrupted(c))}
     started = time.time()
 
     def done(c: Cell, code: int) -> None:
@@ -264,8 +271,12 @@ def main(argv: list[str] | None = None):
     sub = parser.add_subparsers(dest="command", required=True)
     for name in ("run", "report"):
         p = sub.add_parser(name)
-        p.add_argument("--config", type=Path, default=DEFAULT, help="the study's YAML")
         p.add_argument("--results", type=Path, default=ROOT / "results")
+    sub.choices["run"].add_argument("--config", type=Path, nargs="+", default=[DEFAULT],
+                                    help="the studies' YAML files, queued in this order")  # fmt: skip
+    sub.choices["report"].add_argument(
+        "--config", type=Path, default=DEFAULT, help="the study's YAML"
+    )
     sub.choices["run"].add_argument("--jobs", type=int, default=2)
     sub.choices["run"].add_argument("--out", type=Path, default=ROOT / "outputs" / "study")
     sub.choices["run"].add_argument("--commit", action="store_true", help="git-commit each cell")

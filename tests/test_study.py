@@ -222,3 +222,21 @@ def test_task_labels_must_differ(tmp_path):
         study.load_study(write_study(tmp_path, tasks=[twice, twice]))
     with pytest.raises(ValueError, match="label and an env"):
         study.load_study(write_study(tmp_path, tasks=[{"env": "Hopper-v5"}]))
+
+
+def test_run_queues_several_studies_in_one_grid(tmp_path, capsys, monkeypatch):
+    seen = []
+    monkeypatch.setattr(study, "launch_grid", lambda script, todo, jobs, **kw: seen.extend(todo))
+    a = write_study(tmp_path, name="a", algorithms=["ddpg"], seeds=[0])
+    b = tmp_path / "b.yaml"
+    b.write_text(json.dumps({"name": "b", "tasks": ["Walker2d-v5"], "algorithms": ["td3"],
+                             "seeds": [0, 1], "frames": 300}))  # fmt: skip
+    study.main(["run", "--config", str(a), str(b), "--results", str(tmp_path / "results"),
+                "--out", str(tmp_path / "runs")])  # fmt: skip
+    assert ["/".join(c.run_dir.parts[-4:]) for c in seen] == [
+        "a/Hopper-v5/ddpg/seed0",
+        "b/Walker2d-v5/td3/seed0",
+        "b/Walker2d-v5/td3/seed1",
+    ]
+    out = capsys.readouterr().out
+    assert "a: 1 cells to go" in out and "b: 2 cells to go" in out
