@@ -87,11 +87,14 @@ def band_plot(
     plt.close(fig)
 
 
-def study_figures(prefix: Path, title: str, curves: dict, diag: dict, falling: dict) -> None:
+def study_figures(
+    prefix: Path, title: str, curves: dict, diag: dict, falling: dict, q_bias: dict | None = None
+) -> None:
     """One study task's figures, each series ``(x, centre, low, high)`` over seeds:
     ``<prefix>_return.png`` from ``curves``, ``_rave_diagnostics.png`` and
-    ``_rave_model_error.png`` from ``diag`` (metric -> (steps, per-seed values)), and
-    ``_falling_rate.png`` from ``falling``; an empty dict draws nothing."""
+    ``_rave_model_error.png`` from ``diag`` (metric -> (steps, per-seed values)),
+    ``_falling_rate.png`` from ``falling`` and ``_q_bias.png`` from ``q_bias``; an empty
+    dict draws nothing."""
     band = "(mean, band: min-max over seeds)"
     figures = []  # (series, file suffix, y label, title, y limits)
     if curves:
@@ -107,6 +110,9 @@ def study_figures(prefix: Path, title: str, curves: dict, diag: dict, falling: d
     if falling:
         figures.append((falling, "falling_rate", f"eval/falling_rate {band}",
                         f"{title}: share of evaluation episodes that fell", (-0.05, 1.05)))  # fmt: skip
+    if q_bias:
+        figures.append((q_bias, "q_bias", f"eval/q_bias, predicted - Monte-Carlo {band}",
+                        f"{title}: the critics' value bias", None))  # fmt: skip
     for series, suffix, ylabel, name, ylim in figures:
         path = prefix.with_name(f"{prefix.name}_{suffix}.png")
         band_plot(series, path, xlabel="environment frames", ylabel=ylabel, title=name, ylim=ylim)

@@ -29,19 +29,16 @@ import subprocess
 import time
 from pathlib import Path
 
-import numpy as np
-from compare import REFERENCE, cell
-from plot_curves import seeds, study_figures
+from compare import cell
+from study_report import report
 
 from torchrl_rave.training.checkpoint import RunCheckpoint
-from torchrl_rave.training.runs import Cell, GridStopped, launch_grid, read_scalar, train_seconds
-from torchrl_rave.training.stats import difference95, interval95, wilson_interval
+from torchrl_rave.training.runs import Cell, GridStopped, launch_grid, train_seconds
 from torchrl_rave.training.studies import load_study, result_dir, tasks
 
 ROOT = Path(__file__).resolve().parents[1]
 RECIPE = Path(__file__).resolve().parent / "rave_mujoco.py"
 DEFAULT = Path(__file__).resolve().parent / "study" / "mujoco100k.yaml"
-RAVE_DIAGNOSTICS = ["alpha", "wm_transition_mse", *(f"horizon_weight_h{h}" for h in range(4))]
 
 
 def git(repo: Path, *args: str) -> str:
@@ -140,130 +137,6 @@ def run(args) -> None:
         launch_grid(RECIPE, todo, args.jobs, on_done=done, record=record)
     except GridStopped as stop:
         raise SystemExit(str(stop)) from None
-
-
-def fmt_interval(mean: float, half: float, sign: str = "") -> str:
-    """``mean ± half``, or ``mean (1 seed)`` where one seed leaves no interval (NaN)."""
-    return f"{mean:{sign}.0f}" + (" (1 seed)" if np.isnan(half) else f" ± {half:.0f}")
-
-
-def group(study, results: Path, task: str, algorithm: str) -> list[Path]:
-    dirs = [result_dir(results, study, task, algorithm, s) for s in study.seeds]
-    return [d for d in dirs if (d / "cell.json").exists()]
-
-
-def eval_episodes(run: Path) -> int:
-    """Episodes per evaluation of a finished cell, from the config in its cell.json."""
-    return int(json.loads((run / "cell.json").read_text())["config"]["eval"]["episodes"])
-
-
-def series(runs: list[Path], metric: str) -> tuple[np.ndarray, np.ndarray]:
-    data = [read_scalar(r, metric) for r in runs]
-    common = sorted(set.intersection(*(set(s.tolist()) for s, _ in data)))
-    return np.array(common), np.stack([v[np.searchsorted(s, common)] for s, v in data])
-
-
-def report(args) -> str:
-    study = load_study(args.config)
-    out = args.figures
-    out.mkdir(parents=True, exist_ok=True)
-    at = [study.frames // 2, study.frames]
-    # the published reference is at 100k frames: beside a shorter study it would mislead
-    with_ref = study.frames >= 100_000
-    # one evaluation is 10 episodes of one policy snapshot; the evaluations of the last
-    # quarter of the budget, averaged per seed, say more about where a run has got to
-    tail_from = study.frames * 3 // 4
-    lines = [
-        f"Evaluation return ({study.name}): mean ± 95 % t-interval half-width over the seeds "
-        "that finished; the last-quarter column first averages each seed's evaluations after "
-        f"{tail_from:,} frames; falling rate pooled over seeds at the last evaluation, "
-        "with its 95 % Wilson interval.",
-        "",
-        "| task | algorithm | seeds | "
-        + " | ".join(f"return at {f:,}" for f in at)
-        + f" | mean return after {tail_from:,} | falling rate |"
-        + (" reference at 100k (tianshou, gym v3; not ours) |" if with_ref else ""),
-        "| --- " * (5 + len(at) + with_ref) + "|",
-    ]
-    cost, versus = [], []  # the cells' own minutes; RAVE minus each other algorithm
-    for entry in tasks(study):
-        task = entry.label
-        curves, diag, falling, at_frames = {}, {}, {}, {}
-        for algorithm in study.algorithms:
-            runs = group(study, args.results, task, algorithm)
-            minutes = [m / 60 for m in map(train_seconds, runs) if m is not None]
-            if minutes:
-                cost.append(
-                    f"| {task} | {algorithm} | {len(minutes)} | {min(minutes):.0f} | "
-                    f"{max(minutes):.0f} | {sum(minutes) / 60:.1f} |"
-                )
-            ref = (
-                REFERENCE.get(entry.env.split("-")[0], {}).get(algorithm, "")
-                if entry.reference
-                else ""
-            )
-            ref = (f" {ref.split(' / ')[0]} |" if ref else "  |") if with_ref else ""
-            if not runs:
-                lines.append(f"| {task} | {algorithm} | 0 |" + " n/a |" * (len(at) + 2) + ref)
-                continue
-            steps, values = series(runs, "eval/return")
-            cells = []
-            for frame in at:
-                hit = np.flatnonzero(steps == frame)
-                at_frames[algorithm, frame] = values[:, hit[0]] if hit.size else None
-                cells.append(
-                    "n/a" if not hit.size else fmt_interval(*interval95(values[:, hit[0]]))
-                )
-            last = steps > tail_from
-            cells.append(
-                fmt_interval(*interval95(values[:, last].mean(1))) if last.any() else "n/a"
-            )
-            fall_steps, falls = series(runs, "eval/falling_rate")
-            falling[algorithm] = (fall_steps, falls.mean(0), falls.min(0), falls.max(0))
-            episodes = [eval_episodes(r) for r in runs]
-            fell = round(float(falls[:, -1] @ np.array(episodes)))
-            lo, hi = wilson_interval(fell, sum(episodes))
-            lines.append(
-                f"| {task} | {algorithm} | {len(runs)} | "
-                + " | ".join(cells)
-                + f" | {fell / sum(episodes):.2f} [{lo:.2f}, {hi:.2f}] |{ref}"
-            )
-            lo, hi = values.min(0), values.max(0)
-            curves[f"{algorithm} ({seeds(len(runs))})"] = (steps, values.mean(0), lo, hi)
-            if algorithm == "rave":
-                diag = {m: series(runs, f"train/{m}") for m in RAVE_DIAGNOSTICS}
-        rave = [at_frames.get(("rave", f)) for f in at]
-        for other in (a for a in study.algorithms if a != "rave"):
-            theirs = [at_frames.get((other, f)) for f in at]
-            if all(v is not None for v in rave + theirs):
-                row = " | ".join(fmt_interval(*difference95(r, o), "+") for r, o in zip(rave, theirs, strict=True))  # fmt: skip
-                versus.append(f"| {task} | rave - {other} | {row} |")
-        study_figures(out / f"{study.name}_{task}", f"{task}, {study.name}", curves, diag, falling)
-    if versus:
-        lines += [
-            "",
-            "RAVE's mean minus each other algorithm's, with the 95 % interval of the "
-            "difference (Welch's standard error, min(seeds) - 1 degrees of freedom); an "
-            "interval that contains 0 does not separate the two.",
-            "",
-            "| task | difference | " + " | ".join(f"at {f:,}" for f in at) + " |",
-            "| --- " * (2 + len(at)) + "|",
-            *versus,
-        ]
-    if cost:
-        lines += [
-            "",
-            "What the finished cells cost: their own collection, update and evaluation time "
-            "(`time/*_s`, summed), in minutes per cell, and hours in all.",
-            "",
-            "| task | algorithm | cells | min | max | hours |",
-            "| --- | --- | --- | --- | --- | --- |",
-            *cost,
-        ]
-    text = "\n".join(lines)
-    (out / f"{study.name}.md").write_text(text + "\n")
-    print(text)
-    return text
 
 
 def main(argv: list[str] | None = None):

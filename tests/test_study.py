@@ -11,6 +11,9 @@ import pytest
 import study
 from test_recipe import TINY
 
+from torchrl_rave.training.runs import read_scalar
+from torchrl_rave.training.stats import interval95
+
 RAVE_DIAGNOSTICS = ["alpha", "wm_transition_mse"] + [f"horizon_weight_h{h}" for h in range(4)]
 
 
@@ -29,9 +32,14 @@ def write_study(tmp_path: Path, **fields) -> Path:
 
 
 def write_cell(
-    results: Path, algorithm: str, seed: int, metrics: dict[str, list], episodes: int = 10
+    results: Path,
+    algorithm: str,
+    seed: int,
+    metrics: dict[str, list],
+    episodes: int = 10,
+    task: str = "Hopper-v5",
 ) -> None:
-    cell = results / "tiny" / "Hopper-v5" / algorithm / f"seed{seed}"
+    cell = results / "tiny" / task / algorithm / f"seed{seed}"
     for metric, rows in metrics.items():
         csv = cell / algorithm / "scalars" / f"{metric}.csv"
         csv.parent.mkdir(parents=True, exist_ok=True)
@@ -40,10 +48,10 @@ def write_cell(
 
 
 def test_interval95_by_hand():
-    mean, half = study.interval95(np.array([1.0, 2.0, 3.0]))
+    mean, half = interval95(np.array([1.0, 2.0, 3.0]))
     assert mean == 2.0
     assert half == pytest.approx(4.303 * 1.0 / np.sqrt(3))  # t(0.975, 2) * s / sqrt(n)
-    assert np.isnan(study.interval95(np.array([5.0]))[1])
+    assert np.isnan(interval95(np.array([5.0]))[1])
 
 
 def test_report_from_results_alone(tmp_path, capsys):
@@ -96,12 +104,12 @@ def test_run_exports_a_finished_cell_and_skips_it_next_time(tmp_path, capsys):
     assert [(s["commit"], s["from_frame"]) for s in info["starts"]] == [(info["commit"], 0)]
     # the cell's own seconds: its batches' collection, update and evaluation times
     timed = sum(
-        study.read_scalar(tmp_path / "runs" / "tiny" / "Hopper-v5" / "ddpg" / "seed0", m)[1].sum()
+        read_scalar(tmp_path / "runs" / "tiny" / "Hopper-v5" / "ddpg" / "seed0", m)[1].sum()
         for m in ("time/collect_s", "time/update_s", "time/eval_s")
     )
     assert info["train_s"] == round(timed) and info["runner_s"] >= info["train_s"]
     assert info["config"]["algorithm"] == "ddpg" and info["config"]["env"]["seed"] == 0
-    steps, _ = study.read_scalar(cell, "eval/return")
+    steps, _ = read_scalar(cell, "eval/return")
     assert steps.tolist() == [200, 400]
     assert not list(cell.rglob("checkpoint*"))
     study.main(args)
@@ -240,3 +248,71 @@ def test_run_queues_several_studies_in_one_grid(tmp_path, capsys, monkeypatch):
     ]
     out = capsys.readouterr().out
     assert "a: 1 cells to go" in out and "b: 2 cells to go" in out
+
+
+def test_report_of_value_error_contrasts_and_diagnostics_by_hand(tmp_path):
+    """Two tasks paired in ``contrasts``, value-error metrics and RAVE's diagnostics; every
+    number below is worked by hand (t(0.975, 1) = 12.706, two seeds)."""
+    results, figures = tmp_path / "results", tmp_path / "figures"
+
+    def two(v100, v200):  # per-seed values at 100 and 200 frames -> each seed's rows
+        return [[(100, a), (200, b)] for a, b in zip(v100, v200, strict=True)]
+
+    cells = {
+        ("A", "rave"): dict(ret=two([10, 30], [20, 40]), fall=two([1, 1], [0.5, 0.5]),
+                            bias=two([-10, -20], [-4, -6])),
+        ("B", "rave"): dict(ret=two([0, 10], [10, 20]), fall=two([1, 1], [1, 0.8]),
+                            bias=two([-30, -40], [-14, -16])),
+        ("A", "ddpg"): dict(ret=two([0, 0], [0, 0]), fall=two([1, 1], [1, 1]),
+                            bias=two([5, 15], [0, 10])),
+    }  # fmt: skip
+    diag = {  # after 150 frames (the last quarter) only the 200-frame values count
+        "train/horizon_weight_h0": two([0, 0], [0.7, 0.5]),
+        **{f"train/horizon_weight_h{h}": two([0, 0], [0.1, 1 / 6]) for h in (1, 2, 3)},
+        "train/alpha": two([0, 0], [1.0, 1.2]),
+        "train/candidate_variance_h0": two([0, 0], [1, 2]),
+        **{f"train/candidate_variance_h{h}": two([0, 0], [2, 3]) for h in (1, 2)},
+        "train/candidate_variance_h3": two([0, 0], [4, 8]),
+        "train/wm_transition_mse": two([0, 0], [0.01, 0.03]),
+    }
+    for (task, algorithm), c in cells.items():
+        for seed in (0, 1):
+            metrics = {"eval/return": c["ret"][seed], "eval/falling_rate": c["fall"][seed],
+                       "eval/q_bias": c["bias"][seed],
+                       "eval/q_rmse": [(f, abs(v)) for f, v in c["bias"][seed]],
+                       "eval/q_corr": two([0.5, 0.7], [0.9, 0.9])[seed]}  # fmt: skip
+            if algorithm == "rave":
+                metrics.update({k: v[seed] for k, v in diag.items()})
+            write_cell(results, algorithm, seed, metrics, task=task)
+    config = write_study(
+        tmp_path,
+        tasks=[{"label": "A", "env": "Hopper-v5"},
+               {"label": "B", "env": "Hopper-v5", "overrides": ["env.action_noise=0.3"]}],
+        contrasts=[["A", "B"]],
+    )  # fmt: skip
+    study.main(["report", "--config", str(config), "--results", str(results),
+                "--figures", str(figures)])  # fmt: skip
+    table = (figures / "tiny.md").read_text()
+    # q_bias at 100: mean -15, s = 7.071: 12.706 * 7.071 / 1.414 = 63.5; at 200: -5 ± 12.7;
+    # q_rmse the same magnitudes; q_corr 0.6 ± 12.706 * 0.1414 / 1.414 = 1.27
+    assert (
+        "| A | rave | 2 | -15 ± 64 | -5 ± 13 | 15 ± 64 | 5 ± 13 | 0.60 ± 1.27 | 0.90 ± 0.00 |"
+        in table
+    )
+    # B's rave minus A's: return -15 (variances 50 and 200: se 11.18, x 12.706 = 142);
+    # falling rate 0.9 - 0.5 (se sqrt(0.02 / 2) = 0.1: 1.27); q_bias -35 + 15 = -20
+    # (se sqrt(50 / 2 + 50 / 2) = 7.07: 89.8) and -15 + 5 = -10 (se sqrt(2): 18.0)
+    assert ("| A | B | rave | -15 ± 142 | -15 ± 142 | +0.00 ± 0.00 | +0.40 ± 1.27 | "
+            "-20 ± 90 | -10 ± 18 |") in table  # fmt: skip
+    assert "| A | B | ddpg | n/a | n/a | n/a | n/a | n/a | n/a |" in table  # B has no ddpg
+    # rave - ddpg on A: falling 0.5 - 1; q_bias -15 - 10 (se 7.07: 90) and -5 - 5
+    # (se sqrt(2 / 2 + 50 / 2) = 5.10: 64.8)
+    assert "| A | rave - ddpg | +0.00 ± 0.00 | -0.50 ± 0.00 | -25 ± 90 | -10 ± 65 |" in table
+    # w_0 0.6 ± 1.27; w_1..3 (0.1 + 1/6) / 2 = 0.133, s = 0.0471: 0.42; alpha 1.1 ± 1.27;
+    # V_3 / V_0 = 4 in both seeds; MSE 0.02, s = 0.01414: 0.127
+    assert ("| A | rave | 2 | 0.60 ± 1.27 | 0.13 ± 0.42 | 0.13 ± 0.42 | 0.13 ± 0.42 | "
+            "1.10 ± 1.27 | 4.0 ± 0.0 | 0.020 ± 0.127 |") in table  # fmt: skip
+    assert (figures / "tiny_A_q_bias.png").stat().st_size > 10_000
+    # a contrast must name two of the tasks
+    with pytest.raises(ValueError, match="contrast"):
+        study.load_study(write_study(tmp_path, contrasts=[["Hopper-v5", "C"]]))

@@ -38,7 +38,8 @@ def tasks(study: DictConfig) -> list[Task]:
 
 
 def load_study(path: Path) -> DictConfig:
-    """A study file, checked: its keys, its task entries and their distinct labels."""
+    """A study file, checked: its keys, its task entries and their distinct labels, and its
+    ``contrasts`` (optional pairs of task labels the report compares)."""
     study = OmegaConf.load(path)
     for key in ("name", "tasks", "algorithms", "seeds", "frames"):
         if key not in study:
@@ -49,6 +50,9 @@ def load_study(path: Path) -> DictConfig:
     labels = [t.label for t in tasks(study)]
     if len(set(labels)) != len(labels):
         raise ValueError(f"{path}: task labels repeat: {labels}")
+    for pair in study.get("contrasts", []):
+        if len(pair) != 2 or not set(pair) <= set(labels):
+            raise ValueError(f"{path}: a contrast is two of the task labels {labels}, got {pair}")
     return study
 
 

@@ -1,0 +1,270 @@
+"""``study.py report``: a study's tables and figures, rebuilt from ``results/`` alone.
+
+Per task and algorithm, over the seeds that finished: the evaluation return at half and
+all of the budget and over the last quarter, the falling rate, RAVE's mean minus each
+other algorithm's; where the cells logged it, the critics' value error (``eval/q_bias``,
+``eval/q_rmse``, ``eval/q_corr``); the diagnostics of the value-expansion targets; the
+change between the tasks a study pairs in ``contrasts``; what the cells cost; and per task
+the curves of return, falling rate, value bias and RAVE's diagnostics.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+from compare import REFERENCE
+from plot_curves import seeds, study_figures
+
+from torchrl_rave.training.runs import read_scalar, train_seconds
+from torchrl_rave.training.stats import difference95, interval95, wilson_interval
+from torchrl_rave.training.studies import load_study, result_dir, tasks
+
+RAVE_DIAGNOSTICS = ["alpha", "wm_transition_mse", *(f"horizon_weight_h{h}" for h in range(4))]
+WELCH = (
+    "the 95 % interval of the difference (Welch's standard error, min(seeds) - 1 degrees "
+    "of freedom); an interval that contains 0 does not separate the two"
+)
+
+
+def fmt_interval(mean: float, half: float, sign: str = "", digits: int = 0) -> str:
+    """``mean ± half``, or ``mean (1 seed)`` where one seed leaves no interval (NaN)."""
+    value = f"{mean:{sign}.{digits}f}"
+    return value + (" (1 seed)" if np.isnan(half) else f" ± {half:.{digits}f}")
+
+
+def group(study, results: Path, task: str, algorithm: str) -> list[Path]:
+    dirs = [result_dir(results, study, task, algorithm, s) for s in study.seeds]
+    return [d for d in dirs if (d / "cell.json").exists()]
+
+
+def eval_episodes(run: Path) -> int:
+    """Episodes per evaluation of a finished cell, from the config in its cell.json."""
+    return int(json.loads((run / "cell.json").read_text())["config"]["eval"]["episodes"])
+
+
+def series(runs: list[Path], metric: str) -> tuple[np.ndarray, np.ndarray]:
+    data = [read_scalar(r, metric) for r in runs]
+    common = sorted(set.intersection(*(set(s.tolist()) for s, _ in data)))
+    return np.array(common), np.stack([v[np.searchsorted(s, common)] for s, v in data])
+
+
+def at_frame(runs: list[Path], metric: str, frame: int) -> np.ndarray | None:
+    """Per run: ``metric`` logged at exactly ``frame``; ``None`` when no run is given or
+    one of them lacks it (cells from before the metric existed)."""
+    if not runs:
+        return None
+    try:
+        steps, values = series(runs, metric)
+    except FileNotFoundError:
+        return None
+    hit = np.flatnonzero(steps == frame)
+    return values[:, hit[0]] if hit.size else None
+
+
+def tail_means(runs: list[Path], metric: str, after: int) -> np.ndarray | None:
+    """Per run: the mean of ``metric``'s values logged after ``after`` frames."""
+    try:
+        steps, values = series(runs, metric)
+    except FileNotFoundError:
+        return None
+    last = steps > after
+    return values[:, last].mean(1) if last.any() else None
+
+
+def cells_of(values: list[np.ndarray | None], digits: int = 0) -> list[str]:
+    return ["n/a" if v is None else fmt_interval(*interval95(v), digits=digits) for v in values]
+
+
+def differences(a: list, b: list, digits: int = 0) -> list[str] | None:
+    """``a - b`` with its Welch interval per column, or ``None`` when a column lacks data."""
+    if any(v is None for v in a + b):
+        return None
+    return [fmt_interval(*difference95(x, y), "+", digits) for x, y in zip(a, b, strict=True)]
+
+
+def report(args) -> str:
+    study = load_study(args.config)
+    out = args.figures
+    out.mkdir(parents=True, exist_ok=True)
+    at = [study.frames // 2, study.frames]
+    # the published reference is at 100k frames: beside a shorter study it would mislead
+    with_ref = study.frames >= 100_000
+    # one evaluation is 10 episodes of one policy snapshot; the evaluations of the last
+    # quarter of the budget, averaged per seed, say more about where a run has got to
+    tail_from = study.frames * 3 // 4
+    lines = [
+        f"Evaluation return ({study.name}): mean ± 95 % t-interval half-width over the seeds "
+        "that finished; the last-quarter column first averages each seed's evaluations after "
+        f"{tail_from:,} frames; falling rate pooled over seeds at the last evaluation, "
+        "with its 95 % Wilson interval.",
+        "",
+        "| task | algorithm | seeds | "
+        + " | ".join(f"return at {f:,}" for f in at)
+        + f" | mean return after {tail_from:,} | falling rate |"
+        + (" reference at 100k (tianshou, gym v3; not ours) |" if with_ref else ""),
+        "| --- " * (5 + len(at) + with_ref) + "|",
+    ]
+    cost, versus, value_rows, versus_more, diagnostics = [], [], [], [], []
+    # (task, algorithm) -> metric -> per-seed values at each of ``at``
+    measured: dict[tuple[str, str], dict[str, list]] = {}
+    for entry in tasks(study):
+        task = entry.label
+        curves, diag, falling, q_bias = {}, {}, {}, {}
+        for algorithm in study.algorithms:
+            runs = group(study, args.results, task, algorithm)
+            minutes = [m / 60 for m in map(train_seconds, runs) if m is not None]
+            if minutes:
+                cost.append(
+                    f"| {task} | {algorithm} | {len(minutes)} | {min(minutes):.0f} | "
+                    f"{max(minutes):.0f} | {sum(minutes) / 60:.1f} |"
+                )
+            ref = REFERENCE.get(entry.env.split("-")[0], {}).get(algorithm, "")
+            ref = ref if entry.reference else ""
+            ref = (f" {ref.split(' / ')[0]} |" if ref else "  |") if with_ref else ""
+            m = measured[task, algorithm] = {
+                k: [at_frame(runs, f"eval/{k}", f) for f in at]
+                for k in ("return", "falling_rate", "q_bias", "q_rmse", "q_corr")
+            }
+            if not runs:
+                lines.append(f"| {task} | {algorithm} | 0 |" + " n/a |" * (len(at) + 2) + ref)
+                continue
+            steps, values = series(runs, "eval/return")
+            last = tail_means(runs, "eval/return", tail_from)
+            fall_steps, falls = series(runs, "eval/falling_rate")
+            falling[algorithm] = (fall_steps, falls.mean(0), falls.min(0), falls.max(0))
+            episodes = [eval_episodes(r) for r in runs]
+            fell = round(float(falls[:, -1] @ np.array(episodes)))
+            lo, hi = wilson_interval(fell, sum(episodes))
+            lines.append(
+                f"| {task} | {algorithm} | {len(runs)} | "
+                + " | ".join(cells_of([*m["return"], last]))
+                + f" | {fell / sum(episodes):.2f} [{lo:.2f}, {hi:.2f}] |{ref}"
+            )
+            label = f"{algorithm} ({seeds(len(runs))})"
+            curves[label] = (steps, values.mean(0), values.min(0), values.max(0))
+            if m["q_bias"][-1] is not None:
+                value_rows.append(
+                    f"| {task} | {algorithm} | {len(runs)} | "
+                    + " | ".join(cells_of(m["q_bias"] + m["q_rmse"]) + cells_of(m["q_corr"], 2))
+                    + " |"
+                )
+                s, v = series(runs, "eval/q_bias")
+                q_bias[label] = (s, v.mean(0), v.min(0), v.max(0))
+            if algorithm == "rave":
+                diag = {k: series(runs, f"train/{k}") for k in RAVE_DIAGNOSTICS}
+            weights = [tail_means(runs, f"train/horizon_weight_h{h}", tail_from) for h in range(4)]
+            if weights[0] is not None:
+                alpha = tail_means(runs, "train/alpha", tail_from)
+                v0, v3 = (
+                    tail_means(runs, f"train/candidate_variance_h{h}", tail_from) for h in (0, 3)
+                )
+                error = tail_means(runs, "train/wm_transition_mse", tail_from)
+                ratio = None if v0 is None or v3 is None else v3 / v0
+                diagnostics.append(
+                    f"| {task} | {algorithm} | {len(runs)} | "
+                    + " | ".join(cells_of([*weights, alpha], 2) + cells_of([ratio], 1))
+                    + " | "
+                    + " | ".join(cells_of([error], 3))
+                    + " |"
+                )
+        rave = measured[task, "rave"] if "rave" in study.algorithms else None
+        for other in (a for a in study.algorithms if rave is not None and a != "rave"):
+            theirs = measured[task, other]
+            row = differences(rave["return"], theirs["return"])
+            if row is not None:
+                versus.append(f"| {task} | rave - {other} | " + " | ".join(row) + " |")
+            falls_row = differences(rave["falling_rate"], theirs["falling_rate"], 2)
+            bias_row = differences(rave["q_bias"], theirs["q_bias"])
+            if falls_row is not None and bias_row is not None:
+                versus_more.append(
+                    f"| {task} | rave - {other} | " + " | ".join(falls_row + bias_row) + " |"
+                )
+        study_figures(
+            out / f"{study.name}_{task}", f"{task}, {study.name}", curves, diag, falling, q_bias
+        )
+    frames = " | ".join(f"at {f:,}" for f in at)
+    if versus:
+        lines += [
+            "",
+            f"RAVE's mean minus each other algorithm's, with {WELCH}.",
+            "",
+            "| task | difference | " + frames + " |",
+            "| --- " * (2 + len(at)) + "|",
+            *versus,
+        ]
+    if value_rows:
+        lines += [
+            "",
+            "Value error: the critics' estimate of Q(s_t, pi(s_t)) minus the discounted "
+            "Monte-Carlo return of the evaluation episodes (`eval/q_bias`; which states "
+            "count, and how each algorithm's critics are read, is in recipes/README.md), "
+            "its root mean square and the correlation of the two; mean ± 95 % t-interval "
+            "over seeds.",
+            "",
+            "| task | algorithm | seeds | "
+            + " | ".join(f"{k} at {f:,}" for k in ("q_bias", "q_rmse", "q_corr") for f in at)
+            + " |",
+            "| --- " * (3 + 3 * len(at)) + "|",
+            *value_rows,
+        ]
+    if versus_more:
+        lines += [
+            "",
+            f"RAVE minus each other algorithm: falling rate and value bias, with {WELCH}.",
+            "",
+            "| task | difference | "
+            + " | ".join(f"{k} at {f:,}" for k in ("falling rate", "q_bias") for f in at)
+            + " |",
+            "| --- " * (2 + 2 * len(at)) + "|",
+            *versus_more,
+        ]
+    contrasts = [
+        (a, b, algorithm, differences(measured[b, algorithm][k], measured[a, algorithm][k], d))
+        for a, b in study.get("contrasts", [])
+        for algorithm in study.algorithms
+        for k, d in (("return", 0), ("falling_rate", 2), ("q_bias", 0))
+    ]
+    if contrasts:
+        rows = {}
+        for a, b, algorithm, cells in contrasts:
+            rows.setdefault((a, b, algorithm), []).extend(cells or ["n/a"] * len(at))
+        lines += [
+            "",
+            f"The change from one task to its pair, per algorithm: the second's mean minus "
+            f"the first's, with {WELCH}.",
+            "",
+            "| from | to | algorithm | "
+            + " | ".join(f"{k} at {f:,}" for k in ("return", "falling rate", "q_bias") for f in at)
+            + " |",
+            "| --- " * (3 + 3 * len(at)) + "|",
+            *(f"| {a} | {b} | {alg} | " + " | ".join(c) + " |" for (a, b, alg), c in rows.items()),
+        ]
+    if diagnostics:
+        lines += [
+            "",
+            f"The value-expansion targets after {tail_from:,} frames (each seed's mean over "
+            "its updates there, then mean ± 95 % t-interval over seeds): the normalised "
+            "weight w_H of each horizon H, alpha (eq. 12), the horizon-3 candidates' "
+            "variance over the horizon-0 ones', and the world model's transition MSE "
+            "(normalised units).",
+            "",
+            "| task | algorithm | seeds | w_0 | w_1 | w_2 | w_3 | alpha | V_3 / V_0 | model MSE |",
+            "| --- " * 10 + "|",
+            *diagnostics,
+        ]
+    if cost:
+        lines += [
+            "",
+            "What the finished cells cost: their own collection, update and evaluation time "
+            "(`time/*_s`, summed), in minutes per cell, and hours in all.",
+            "",
+            "| task | algorithm | cells | min | max | hours |",
+            "| --- | --- | --- | --- | --- | --- |",
+            *cost,
+        ]
+    text = "\n".join(lines)
+    (out / f"{study.name}.md").write_text(text + "\n")
+    print(text)
+    return text
