@@ -26,9 +26,9 @@ from pathlib import Path
 import torch
 from update_throughput import recipe_config
 
-from torchrl_rave.training.agent import make_actor, make_env
-from torchrl_rave.training.collect import make_collector, push_policy_weights
-from torchrl_rave.training.config import check_config
+from torchrl_rave.recipe.agent import make_actor, make_env
+from torchrl_rave.recipe.collect import make_collector, push_policy_weights
+from torchrl_rave.recipe.config import check_config
 
 ROOT = Path(__file__).resolve().parents[1]
 

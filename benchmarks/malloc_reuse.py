@@ -1,5 +1,5 @@
 """Does ``keep_freed_memory`` pay? The same updates with glibc's default malloc and with
-``torchrl_rave.training.keep_freed_memory()``, side by side.
+``torchrl_rave.recipe.keep_freed_memory()``, side by side.
 
     python benchmarks/malloc_reuse.py              # about 2 min on 2 cores
     python benchmarks/malloc_reuse.py --help
@@ -41,7 +41,7 @@ def worker(kind: str, seconds: float) -> dict:
     import torch
     from update_throughput import batches, plain_ddpg_update, recipe_config, recipe_update
 
-    from torchrl_rave.training.memory import keep_freed_memory
+    from torchrl_rave.recipe.memory import keep_freed_memory
 
     took = keep_freed_memory() if kind == "kept" else False
     device = torch.device("cpu")

@@ -22,9 +22,9 @@ from pathlib import Path
 import torch
 from update_throughput import _Spec, recipe_config
 
-from torchrl_rave.training.agent import make_agent
-from torchrl_rave.training.config import check_config
-from torchrl_rave.training.memory import keep_freed_memory
+from torchrl_rave.recipe.agent import make_agent
+from torchrl_rave.recipe.config import check_config
+from torchrl_rave.recipe.memory import keep_freed_memory
 
 VARIANTS = {"fused": {"fused": True}, "foreach": {"foreach": True}, "loop": {"foreach": False}}
 

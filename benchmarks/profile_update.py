@@ -41,7 +41,7 @@ from torch.profiler import ProfilerActivity, profile
 from torch.utils._python_dispatch import TorchDispatchMode
 from update_throughput import Case, batches, measure, recipe_update, record_matmuls
 
-from torchrl_rave.training.memory import keep_freed_memory
+from torchrl_rave.recipe.memory import keep_freed_memory
 
 _MATMULS = ((torch, "bmm"), (torch, "baddbmm"), (torch, "matmul"), (F, "linear"))
 

@@ -55,10 +55,10 @@ from torchrl.data import Bounded
 from torchrl.modules import MLP, Actor, ValueOperator
 from torchrl.objectives import DDPGLoss, SoftUpdate, ValueEstimators
 
-from torchrl_rave.training.agent import make_agent
-from torchrl_rave.training.config import check_config
-from torchrl_rave.training.memory import keep_freed_memory
-from torchrl_rave.training.update import make_agent_step
+from torchrl_rave.recipe.agent import make_agent
+from torchrl_rave.recipe.config import check_config
+from torchrl_rave.recipe.memory import keep_freed_memory
+from torchrl_rave.recipe.update import make_agent_step
 
 ROOT = Path(__file__).resolve().parents[1]
 

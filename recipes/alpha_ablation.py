@@ -21,7 +21,7 @@ from pathlib import Path
 from compare import cell, run, run_dir
 from plot_curves import plot, table
 
-from torchrl_rave.training.runs import curves
+from torchrl_rave.recipe.runs import curves
 
 # variant -> (algorithm, overrides, legend label)
 VARIANTS = {

@@ -19,7 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
-from torchrl_rave.training.runs import Cell, GridStopped, launch_grid, value_logged_at
+from torchrl_rave.recipe.runs import Cell, GridStopped, launch_grid, value_logged_at
 
 RECIPE = Path(__file__).resolve().parent / "rave_mujoco.py"
 

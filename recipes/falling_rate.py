@@ -27,10 +27,10 @@ import tqdm
 from plot_curves import band_plot
 from q_vs_return import load_run
 
-from torchrl_rave.training.checkpoint import saved_config
-from torchrl_rave.training.evaluate import evaluate
-from torchrl_rave.training.runs import parse_groups, read_scalar
-from torchrl_rave.training.stats import wilson_interval
+from torchrl_rave.recipe.checkpoint import saved_config
+from torchrl_rave.recipe.evaluate import evaluate
+from torchrl_rave.recipe.runs import parse_groups, read_scalar
+from torchrl_rave.recipe.stats import wilson_interval
 
 
 def final_falls(run_dir: Path, episodes: int, seed: int, label: str = "") -> int:

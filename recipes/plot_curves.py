@@ -20,7 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
-from torchrl_rave.training.runs import curves, parse_groups
+from torchrl_rave.recipe.runs import curves, parse_groups
 
 
 def value_at(steps: np.ndarray, values: np.ndarray, frame: int) -> np.ndarray:

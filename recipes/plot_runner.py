@@ -26,7 +26,7 @@ from tensordict import TensorDict  # noqa: E402
 from torchrl.envs.utils import ExplorationType, set_exploration_type  # noqa: E402
 
 from torchrl_rave.envs.families import import_env_family  # noqa: E402
-from torchrl_rave.training.agent import load_agent  # noqa: E402
+from torchrl_rave.recipe.agent import load_agent  # noqa: E402
 
 
 def constant_policy(level: float):

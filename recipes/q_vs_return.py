@@ -23,8 +23,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from torchrl_rave.training.agent import critic_mean, load_agent, make_env
-from torchrl_rave.training.evaluate import discounted_returns, value_error
+from torchrl_rave.recipe.agent import critic_mean, load_agent, make_env
+from torchrl_rave.recipe.evaluate import discounted_returns, value_error
 
 
 def load_run(run_dir: Path):

@@ -7,7 +7,7 @@ python recipes/rave_mujoco.py resume=outputs/2026-11-22/10-00-00             # c
 
 ``algorithm`` picks ddpg | mve | steve | rave | rave_constant (the estimator settings of one
 K-critic DDPG learner) or td3 | sac | ppo (TorchRL's losses; ppo learns on-policy). The pieces come from
-``torchrl_rave.training``; this file is the training loop. See recipes/README.md for every
+``torchrl_rave.recipe``; this file is the training loop. See recipes/README.md for every
 key and metric.
 """
 
@@ -24,7 +24,7 @@ from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig, OmegaConf
 from torchrl.data import ReplayBuffer
 
-from torchrl_rave.training.agent import (
+from torchrl_rave.recipe.agent import (
     Agent,
     critic_loss_key,
     make_agent,
@@ -32,13 +32,13 @@ from torchrl_rave.training.agent import (
     make_replay_buffer,
     q_at_points,
 )
-from torchrl_rave.training.checkpoint import (
+from torchrl_rave.recipe.checkpoint import (
     RunCheckpoint,
     config_for_resume,
     exclusive_run,
     saved_config,
 )
-from torchrl_rave.training.collect import (
+from torchrl_rave.recipe.collect import (
     NonFiniteEnvOutput,
     StopRequest,
     check_finite,
@@ -48,15 +48,15 @@ from torchrl_rave.training.collect import (
     shutdown_on_error,
     stop_run,
 )
-from torchrl_rave.training.config import (
+from torchrl_rave.recipe.config import (
     apply_process_settings,
     check_config,
     check_resumable,
     replay_buffer_size,
     resolve_config,
 )
-from torchrl_rave.training.evaluate import evaluate_agent, make_logger
-from torchrl_rave.training.update import make_agent_step, ppo_update
+from torchrl_rave.recipe.evaluate import evaluate_agent, make_logger
+from torchrl_rave.recipe.update import make_agent_step, ppo_update
 
 CONFIG = Path(__file__).with_name("config.yaml")
 

@@ -32,9 +32,9 @@ from pathlib import Path
 from compare import cell
 from study_report import report
 
-from torchrl_rave.training.checkpoint import RunCheckpoint
-from torchrl_rave.training.runs import Cell, GridStopped, launch_grid, train_seconds
-from torchrl_rave.training.studies import load_study, result_dir, tasks
+from torchrl_rave.recipe.checkpoint import RunCheckpoint
+from torchrl_rave.recipe.runs import Cell, GridStopped, launch_grid, train_seconds
+from torchrl_rave.recipe.studies import load_study, result_dir, tasks
 
 ROOT = Path(__file__).resolve().parents[1]
 RECIPE = Path(__file__).resolve().parent / "rave_mujoco.py"

@@ -17,9 +17,9 @@ import numpy as np
 from compare import REFERENCE
 from plot_curves import seeds, study_figures
 
-from torchrl_rave.training.runs import read_scalar, train_seconds
-from torchrl_rave.training.stats import difference95, interval95, wilson_interval
-from torchrl_rave.training.studies import load_study, result_dir, tasks
+from torchrl_rave.recipe.runs import read_scalar, train_seconds
+from torchrl_rave.recipe.stats import difference95, interval95, wilson_interval
+from torchrl_rave.recipe.studies import load_study, result_dir, tasks
 
 RAVE_DIAGNOSTICS = ["alpha", "wm_transition_mse", *(f"horizon_weight_h{h}" for h in range(4))]
 WELCH = (

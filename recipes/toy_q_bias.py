@@ -5,7 +5,7 @@ python recipes/toy_q_bias.py                  # 4 methods x 2 noise levels x 4 s
 python recipes/toy_q_bias.py quick=true       # one short run per method and k (CI)
 
 Every run is an ordinary ``rave_mujoco.py`` training on ``RAVEToy-v0`` (overrides in
-``toy.yaml``), launched by the grid launcher of ``torchrl_rave.training.runs``; after each
+``toy.yaml``), launched by the grid launcher of ``torchrl_rave.recipe.runs``; after each
 collector batch it logs ``q/plus`` and ``q/minus`` (``logger.q_points``): ``Q-hat(s_0, +1)``
 and ``Q-hat(s_0, -1)``, the mean over the learner's critics in reward units. The study writes ``toy_q_bias.png``
 (curves, seed spread, exact ground truth) and ``toy_q_bias.md`` (final estimates, truth,
@@ -22,7 +22,7 @@ from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig
 
 from torchrl_rave.envs import ground_truth_q
-from torchrl_rave.training.runs import Cell, GridStopped, launch_grid, read_scalar
+from torchrl_rave.recipe.runs import Cell, GridStopped, launch_grid, read_scalar
 
 RECIPE = Path(__file__).resolve().parent / "rave_mujoco.py"
 ACTIONS = {"plus": 1.0, "minus": -1.0}

@@ -9,7 +9,7 @@ import torch
 from test_recipe import make_cfg
 
 from torchrl_rave.envs import ActuatorNoise
-from torchrl_rave.training.agent import make_env
+from torchrl_rave.recipe.agent import make_env
 
 
 def rollout_obs(env: gym.Env, actions: np.ndarray, seed: int) -> np.ndarray:
@@ -138,7 +138,7 @@ class TestRecipeEnv:
 
     @pytest.mark.parametrize("bad", ["-0.1", "inf", "abc", "true"])
     def test_bad_noise_is_refused_by_name(self, bad):
-        from torchrl_rave.training.config import check_config
+        from torchrl_rave.recipe.config import check_config
 
         with pytest.raises(ValueError, match="env.action_noise"):
             check_config(make_cfg("env.name=Hopper-v5", f"env.action_noise={bad}"))

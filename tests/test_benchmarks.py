@@ -12,7 +12,7 @@ import torch
 import update_throughput as bench
 from torch import nn
 
-from torchrl_rave.training.update import make_agent_step
+from torchrl_rave.recipe.update import make_agent_step
 
 ROOT = Path(__file__).resolve().parents[1]
 

@@ -9,7 +9,7 @@ import torch
 from test_recipe import TINY, make_cfg
 
 from torchrl_rave.envs import BULLET_IDS, import_env_family
-from torchrl_rave.training.agent import make_env
+from torchrl_rave.recipe.agent import make_env
 
 ALL_ALGORITHMS = ["ddpg", "mve", "steve", "rave", "rave_constant", "td3", "sac", "ppo"]
 

@@ -11,8 +11,8 @@ import torch
 import update_throughput as bench
 from test_recipe import TINY, make_cfg
 
-from torchrl_rave.training.agent import make_agent, make_env
-from torchrl_rave.training.config import check_config
+from torchrl_rave.recipe.agent import make_agent, make_env
+from torchrl_rave.recipe.config import check_config
 
 ROOT = Path(__file__).resolve().parents[1]
 

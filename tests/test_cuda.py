@@ -21,7 +21,7 @@ from test_value_expansion import actor_net, batch, critic_net, naive_target, wor
 import torchrl_rave.modules.world_model as world_model_module
 from torchrl_rave import ValueExpansionEstimator
 from torchrl_rave.objectives.world_model_loss import WorldModelEnsembleLoss
-from torchrl_rave.training.agent import load_agent, make_replay_buffer
+from torchrl_rave.recipe.agent import load_agent, make_replay_buffer
 
 pytestmark = [
     pytest.mark.gpu,

@@ -16,10 +16,10 @@ import torch
 from tensordict import TensorDict
 from test_recipe import TINY, make_cfg
 
-from torchrl_rave.training.agent import make_actor, make_env
-from torchrl_rave.training.checkpoint import RunCheckpoint
-from torchrl_rave.training.collect import CollectorFailure, make_collector, push_policy_weights
-from torchrl_rave.training.config import check_config
+from torchrl_rave.recipe.agent import make_actor, make_env
+from torchrl_rave.recipe.checkpoint import RunCheckpoint
+from torchrl_rave.recipe.collect import CollectorFailure, make_collector, push_policy_weights
+from torchrl_rave.recipe.config import check_config
 
 TESTS = Path(__file__).resolve().parent
 

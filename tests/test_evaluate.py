@@ -8,7 +8,7 @@ import pytest
 import torch
 from torchrl.envs import GymWrapper, RewardScaling, RewardSum, StepCounter, TransformedEnv
 
-from torchrl_rave.training.evaluate import (
+from torchrl_rave.recipe.evaluate import (
     discounted_returns,
     evaluate,
     value_error,
@@ -140,8 +140,8 @@ class TestBootstrapValue:
     def test_constant_critics(self, algorithm, biases, expected):
         from test_recipe import make_cfg
 
-        from torchrl_rave.training.agent import bootstrap_value, critic_params, make_agent
-        from torchrl_rave.training.agent import make_env as make_recipe_env
+        from torchrl_rave.recipe.agent import bootstrap_value, critic_params, make_agent
+        from torchrl_rave.recipe.agent import make_env as make_recipe_env
 
         cfg = make_cfg(f"algorithm={algorithm}", "env.name=InvertedPendulum-v5")
         env = make_recipe_env(cfg, torch.device("cpu"))

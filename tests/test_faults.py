@@ -28,7 +28,7 @@ from test_recipe import TINY, make_cfg
 from torch import nn
 from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
 
-from torchrl_rave.training.checkpoint import (
+from torchrl_rave.recipe.checkpoint import (
     CheckpointWriteError,
     DamagedCheckpoint,
     DamagedCheckpointWarning,
@@ -37,8 +37,8 @@ from torchrl_rave.training.checkpoint import (
     RunInUse,
     exclusive_run,
 )
-from torchrl_rave.training.collect import CollectorTimeout, NonFiniteEnvOutput, deadline
-from torchrl_rave.training.runs import Cell, GridStopped, launch_grid
+from torchrl_rave.recipe.collect import CollectorTimeout, NonFiniteEnvOutput, deadline
+from torchrl_rave.recipe.runs import Cell, GridStopped, launch_grid
 
 FRAMES = 500  # frames in the small test buffer
 
@@ -433,7 +433,7 @@ class TestStoppingRuns:
 
 GRID_CELL = Path(__file__).with_name("grid_cell.py")
 HOLD_LOCK = """import sys, time
-from torchrl_rave.training.checkpoint import exclusive_run
+from torchrl_rave.recipe.checkpoint import exclusive_run
 with exclusive_run(sys.argv[1]):
     print("held", flush=True)
     time.sleep(600)

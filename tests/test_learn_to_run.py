@@ -11,7 +11,7 @@ import torch
 from test_recipe import TINY, make_cfg
 
 from torchrl_rave.envs import OSIM_IDS, import_env_family
-from torchrl_rave.training.agent import make_env
+from torchrl_rave.recipe.agent import make_env
 
 L = pytest.importorskip("torchrl_rave.envs.learn_to_run", reason="needs the osim extra")
 ALL_ALGORITHMS = ["ddpg", "mve", "steve", "rave", "rave_constant", "td3", "sac", "ppo"]

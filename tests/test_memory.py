@@ -10,8 +10,8 @@ import pytest
 import rave_mujoco
 from test_recipe import TINY, make_cfg
 
-from torchrl_rave.training import memory
-from torchrl_rave.training.config import check_config
+from torchrl_rave.recipe import memory
+from torchrl_rave.recipe.config import check_config
 
 # allocates and frees 2 MiB temporaries 100 times, then counts the page faults of 100 more.
 # "plain" holds glibc's documented default thresholds fixed (128 KiB each; setting them
@@ -20,7 +20,7 @@ from torchrl_rave.training.config import check_config
 # over the loop in a dozen local runs, and none at all in one CI run.
 FAULTS = """
 import ctypes, resource, sys, torch
-from torchrl_rave.training.memory import M_MMAP_THRESHOLD, M_TRIM_THRESHOLD, keep_freed_memory
+from torchrl_rave.recipe.memory import M_MMAP_THRESHOLD, M_TRIM_THRESHOLD, keep_freed_memory
 if sys.argv[1] == "keep":
     kept = keep_freed_memory()
 else:

@@ -8,7 +8,7 @@ import numpy as np
 import plot_curves
 import pytest
 
-from torchrl_rave.training.runs import curves, parse_groups, read_scalar
+from torchrl_rave.recipe.runs import curves, parse_groups, read_scalar
 
 
 def fake_run(root: Path, exp: str, rows: list[tuple[int, float]]) -> Path:

@@ -10,8 +10,8 @@ import pytest
 import rave_mujoco
 from test_recipe import TINY, make_cfg, read_scalar
 
-from torchrl_rave.training.agent import make_replay_buffer
-from torchrl_rave.training.checkpoint import RunCheckpoint
+from torchrl_rave.recipe.agent import make_replay_buffer
+from torchrl_rave.recipe.checkpoint import RunCheckpoint
 
 # two 200-frame batches, two epochs of four 50-frame minibatches each
 PPO = [

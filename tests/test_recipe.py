@@ -19,7 +19,7 @@ import torch
 from hydra import compose, initialize_config_dir
 from omegaconf import OmegaConf
 
-from torchrl_rave.training.agent import (
+from torchrl_rave.recipe.agent import (
     critic_params,
     make_actor,
     make_critic,
@@ -28,10 +28,10 @@ from torchrl_rave.training.agent import (
     make_replay_buffer,
     make_world_model,
 )
-from torchrl_rave.training.checkpoint import RunCheckpoint
-from torchrl_rave.training.collect import NonFiniteEnvOutput
-from torchrl_rave.training.config import ALGORITHMS
-from torchrl_rave.training.runs import value_logged_at
+from torchrl_rave.recipe.checkpoint import RunCheckpoint
+from torchrl_rave.recipe.collect import NonFiniteEnvOutput
+from torchrl_rave.recipe.config import ALGORITHMS
+from torchrl_rave.recipe.runs import value_logged_at
 
 RECIPES = Path(__file__).resolve().parents[1] / "recipes"
 

@@ -11,8 +11,8 @@ import pytest
 import study
 from test_recipe import TINY
 
-from torchrl_rave.training.runs import read_scalar
-from torchrl_rave.training.stats import interval95
+from torchrl_rave.recipe.runs import read_scalar
+from torchrl_rave.recipe.stats import interval95
 
 RAVE_DIAGNOSTICS = ["alpha", "wm_transition_mse"] + [f"horizon_weight_h{h}" for h in range(4)]
 
@@ -133,7 +133,7 @@ def test_report_gives_rave_minus_each_algorithm_with_welch_intervals(tmp_path):
 
 
 def test_difference95_by_hand():
-    from torchrl_rave.training.stats import difference95, t975
+    from torchrl_rave.recipe.stats import difference95, t975
 
     a, b = np.array([1.0, 4.0, 4.0, 7.0]), np.array([0.0, 2.0, 4.0])
     diff, half = difference95(a, b)
@@ -219,7 +219,7 @@ def test_the_stochastic_study_has_its_36_cells_with_their_noise(tmp_path):
     # every cell's overrides make a valid recipe config
     from test_recipe import make_cfg
 
-    from torchrl_rave.training.config import check_config
+    from torchrl_rave.recipe.config import check_config
 
     check_config(make_cfg(*noisy.overrides, f"collector.total_frames={noisy.frames}"))
 

@@ -11,6 +11,7 @@ from torchrl.trainers import Trainer, TrainerHookBase
 
 from torchrl_rave._checks import check_positive_int
 from torchrl_rave.modules.world_model import WorldModelEnsemble
+from torchrl_rave.objectives.compile import compile_loss
 from torchrl_rave.objectives.world_model_loss import WorldModelEnsembleLoss
 
 __all__ = ["WorldModelTrainer"]
@@ -129,9 +130,7 @@ class WorldModelTrainer(TrainerHookBase):
     def compile(self, mode: str | None = None) -> WorldModelTrainer:
         """Runs :meth:`update`'s loss forward (and so its backward) through
         ``torch.compile``; the optimiser step stays eager, see
-        :func:`~torchrl_rave.training.update.compile_loss`."""
-        from torchrl_rave.training.update import compile_loss
-
+        :func:`~torchrl_rave.objectives.compile.compile_loss`."""
         self._loss_total = compile_loss(self._loss_total_eager, mode)
         return self
 

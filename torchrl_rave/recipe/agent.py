@@ -46,14 +46,14 @@ from torchrl_rave.objectives import (
     WorldModelEnsembleLoss,
     make_value_expansion_estimator,
 )
-from torchrl_rave.trainers import WorldModelTrainer
-from torchrl_rave.training.config import (
+from torchrl_rave.recipe.config import (
     ALGORITHMS,
     Algorithm,
     num_critics,
     replay_buffer_size,
     resolve_config,
 )
+from torchrl_rave.trainers import WorldModelTrainer
 
 __all__ = [
     "Agent",
@@ -135,7 +135,7 @@ def make_agent(cfg: DictConfig, env, device: torch.device | str = "cpu") -> Agen
 def load_agent(run_dir: str | Path, device: torch.device | str = "cpu") -> tuple[DictConfig, Agent]:
     """The config and the agent of a run directory's latest checkpoint (nothing in it is
     unpickled or executed)."""
-    from torchrl_rave.training.checkpoint import RunCheckpoint
+    from torchrl_rave.recipe.checkpoint import RunCheckpoint
 
     checkpoint = RunCheckpoint(run_dir)
     path = checkpoint.latest()  # the newest undamaged one
@@ -373,7 +373,7 @@ def make_world_model_trainer(
 
 def make_replay_buffer(cfg: DictConfig, device) -> TensorDictReplayBuffer:
     """The replay buffer; for ppo the rollout buffer of one batch, read in minibatches
-    without replacement (see :func:`~torchrl_rave.training.config.resolve_config`)."""
+    without replacement (see :func:`~torchrl_rave.recipe.config.resolve_config`)."""
     cfg = resolve_config(cfg)
     sampler = SamplerWithoutReplacement() if cfg.algorithm == "ppo" else None
     return TensorDictReplayBuffer(

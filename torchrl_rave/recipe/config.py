@@ -10,7 +10,7 @@ import torch
 from omegaconf import DictConfig, OmegaConf
 
 from torchrl_rave.envs.families import BULLET_IDS, OSIM_IDS, import_env_family
-from torchrl_rave.training import memory
+from torchrl_rave.recipe import memory
 
 __all__ = [
     "ALGORITHMS",
@@ -360,7 +360,7 @@ def check_ray_fits(cfg: DictConfig, total: dict, where: str) -> None:
 
 def apply_process_settings(cfg: DictConfig) -> None:
     """The learner process's own settings: ``threads`` (torch's thread count) and
-    ``keep_freed_memory`` (:func:`~torchrl_rave.training.memory.keep_freed_memory`)."""
+    ``keep_freed_memory`` (:func:`~torchrl_rave.recipe.memory.keep_freed_memory`)."""
     if cfg.threads:
         torch.set_num_threads(cfg.threads)
     if cfg.keep_freed_memory:

@@ -1,4 +1,4 @@
-"""torchrl_rave.training: run checkpoints (no pickle, two kept, old format refused),
+"""torchrl_rave.recipe: run checkpoints (no pickle, two kept, old format refused),
 load_policy from a run directory, the run-directory reader, and the house rules."""
 
 from __future__ import annotations
@@ -13,9 +13,9 @@ import torch
 from tensordict import TensorDict
 from test_recipe import TINY, make_cfg
 
-from torchrl_rave.training import load_agent, load_policy
-from torchrl_rave.training.checkpoint import RunCheckpoint
-from torchrl_rave.training.runs import read_scalar, train_seconds, value_logged_at
+from torchrl_rave.recipe import load_agent, load_policy
+from torchrl_rave.recipe.checkpoint import RunCheckpoint
+from torchrl_rave.recipe.runs import read_scalar, train_seconds, value_logged_at
 
 ROOT = Path(__file__).resolve().parents[1]
 

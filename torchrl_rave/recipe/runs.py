@@ -19,7 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
-from torchrl_rave.training.checkpoint import PREFIX, RunCheckpoint
+from torchrl_rave.recipe.checkpoint import PREFIX, RunCheckpoint
 
 __all__ = [
     "Cell",

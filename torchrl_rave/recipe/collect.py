@@ -14,8 +14,8 @@ from omegaconf import DictConfig
 from tensordict import TensorDict, TensorDictBase
 from torchrl.collectors import Collector, MultiSyncCollector
 
-from torchrl_rave.training.agent import make_actor, make_env
-from torchrl_rave.training.config import ALGORITHMS, check_ray_fits
+from torchrl_rave.recipe.agent import make_actor, make_env
+from torchrl_rave.recipe.config import ALGORITHMS, check_ray_fits
 
 
 def make_collector(cfg: DictConfig, env, policy, device, frames_done: int = 0):

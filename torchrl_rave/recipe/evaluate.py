@@ -11,8 +11,8 @@ from tensordict import TensorDictBase
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 from torchrl.record.loggers import Logger, get_logger
 
-from torchrl_rave.training.agent import bootstrap_value
-from torchrl_rave.training.collect import NonFiniteEnvOutput
+from torchrl_rave.recipe.agent import bootstrap_value
+from torchrl_rave.recipe.collect import NonFiniteEnvOutput
 
 
 def make_logger(cfg: DictConfig, run_dir: str, state: dict | None = None) -> Logger | None:
@@ -86,7 +86,7 @@ def evaluate(
     NaN/inf in an observation or reward raises :class:`NonFiniteEnvOutput`.
 
     With ``value`` (the critics' estimate ``[T]`` of the return from each step's state and
-    action, e.g. :func:`~torchrl_rave.training.agent.bootstrap_value`), the value error is
+    action, e.g. :func:`~torchrl_rave.recipe.agent.bootstrap_value`), the value error is
     measured too (:func:`value_error`): at the steps :func:`value_error_states` keeps, the
     estimate against the discounted Monte-Carlo return of the episode's own rewards with
     ``gamma``, both divided by ``reward_scale`` (environment reward units). The actions
@@ -125,7 +125,7 @@ def evaluate(
 
 
 def evaluate_agent(cfg: DictConfig, env, agent) -> dict[str, float]:
-    """:func:`evaluate` of a recipe agent (:class:`~torchrl_rave.training.agent.Agent`):
+    """:func:`evaluate` of a recipe agent (:class:`~torchrl_rave.recipe.agent.Agent`):
     ``cfg.eval.episodes`` episodes of its deterministic actor, with the value error of the
     critics as its loss bootstraps from them, at the run's gamma and reward scale."""
     return evaluate(
