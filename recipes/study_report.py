@@ -21,7 +21,9 @@ from torchrl_rave.recipe.runs import read_scalar, train_seconds
 from torchrl_rave.recipe.stats import difference95, interval95, wilson_interval
 from torchrl_rave.recipe.studies import load_study, result_dir, tasks
 
-RAVE_DIAGNOSTICS = ["alpha", "wm_transition_mse", *(f"horizon_weight_h{h}" for h in range(4))]
+RAVE_DIAGNOSTICS = ["rave_alpha", "wm_transition_mse", *(f"horizon_weight_h{h}" for h in range(4))]
+# metrics under an earlier name in cells that ran before the rename
+EARLIER_NAMES = {"train/rave_alpha": "train/alpha", "train/sac_temperature": "train/sac_alpha"}
 WELCH = (
     "the 95 % interval of the difference (Welch's standard error, min(seeds) - 1 degrees "
     "of freedom); an interval that contains 0 does not separate the two"
@@ -44,8 +46,18 @@ def eval_episodes(run: Path) -> int:
     return int(json.loads((run / "cell.json").read_text())["config"]["eval"]["episodes"])
 
 
+def read_metric(run: Path, metric: str) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`read_scalar`, or the metric's earlier name in a cell that logged that one."""
+    try:
+        return read_scalar(run, metric)
+    except FileNotFoundError:
+        if metric not in EARLIER_NAMES:
+            raise
+        return read_scalar(run, EARLIER_NAMES[metric])
+
+
 def series(runs: list[Path], metric: str) -> tuple[np.ndarray, np.ndarray]:
-    data = [read_scalar(r, metric) for r in runs]
+    data = [read_metric(r, metric) for r in runs]
     common = sorted(set.intersection(*(set(s.tolist()) for s, _ in data)))
     return np.array(common), np.stack([v[np.searchsorted(s, common)] for s, v in data])
 
@@ -156,7 +168,7 @@ def report(args) -> str:
                 diag = {k: series(runs, f"train/{k}") for k in RAVE_DIAGNOSTICS}
             weights = [tail_means(runs, f"train/horizon_weight_h{h}", tail_from) for h in range(4)]
             if weights[0] is not None:
-                alpha = tail_means(runs, "train/alpha", tail_from)
+                alpha = tail_means(runs, "train/rave_alpha", tail_from)
                 v0, v3 = (
                     tail_means(runs, f"train/candidate_variance_h{h}", tail_from) for h in (0, 3)
                 )

@@ -5,8 +5,9 @@ python scripts/same_numbers.py --out after.json --compare before.json  # at the 
 
 Each algorithm trains for a few hundred updates on Hopper-v5 (seed 0, one thread, the
 recipe's command line exactly as a user types it); every metric it logs except the
-``time/*`` ones is kept, step by step. ``--compare`` lists every metric whose values differ,
-and exits 1 if any does.
+``time/*`` ones is kept, step by step. ``--compare`` lists every metric whose values differ
+(or that one side lacks), and exits 1 if any does; ``--rename OLD=NEW`` compares a renamed
+metric under its new name.
 """
 
 from __future__ import annotations
@@ -61,6 +62,13 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--out", type=Path, required=True, help="JSON of every run's metrics")
     parser.add_argument("--compare", type=Path, help="an earlier --out to compare against")
     parser.add_argument("--algorithms", nargs="+", default=ALGORITHMS)
+    parser.add_argument(
+        "--rename",
+        nargs="*",
+        default=[],
+        metavar="OLD=NEW",
+        help="metrics renamed since --compare's run: compared under NEW",
+    )
     parser.add_argument("extra", nargs="*", help="more recipe overrides for every run")
     args = parser.parse_args(argv)
     results = {}
@@ -72,6 +80,8 @@ def main(argv: list[str] | None = None) -> int:
     if args.compare is None:
         return 0
     before = json.loads(args.compare.read_text())
+    renames = dict(r.split("=", 1) for r in args.rename)
+    before = {a: {renames.get(k, k): v for k, v in m.items()} for a, m in before.items()}
     differ = []
     for algorithm, metrics in results.items():
         old = before.get(algorithm, {})

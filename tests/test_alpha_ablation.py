@@ -34,8 +34,10 @@ def test_two_variants_end_to_end(tmp_path):
         "dynamic alpha (eq. 12, alpha = 1.5)",
     ]
     base = tmp_path / "Hopper-v5"
-    constant = logged(base / "rave_alpha0" / "seed0" / "rave_alpha0" / "scalars" / "train", "alpha")
-    dynamic = logged(base / "rave" / "seed0" / "rave" / "scalars" / "train", "alpha")
+    constant = logged(
+        base / "rave_alpha0" / "seed0" / "rave_alpha0" / "scalars" / "train", "rave_alpha"
+    )
+    dynamic = logged(base / "rave" / "seed0" / "rave" / "scalars" / "train", "rave_alpha")
     assert constant and all(a == 0.0 for a in constant)
     assert dynamic and all(0.0 <= a <= 1.5 for a in dynamic)
     assert (base / "alpha_ablation.png").stat().st_size > 10_000

@@ -16,6 +16,7 @@ import torch
 from tensordict import TensorDict
 from test_recipe import TINY, make_cfg
 
+from torchrl_rave.recipe import loop
 from torchrl_rave.recipe.agent import make_actor, make_env
 from torchrl_rave.recipe.checkpoint import RunCheckpoint
 from torchrl_rave.recipe.collect import CollectorFailure, make_collector, push_policy_weights
@@ -151,7 +152,7 @@ def test_bad_worker_settings_are_refused():
             check_config(make_cfg(*TINY, *ray, override))
     # more workers than a local instance has CPUs would wait forever
     too_many = ["collector.backend=ray", "collector.num_workers=4", "ray.num_cpus=2"]
-    with pytest.raises(ValueError, match=r"ray.worker_cpus=1 .* = 4 CPU <= the 2 CPU of"):
+    with pytest.raises(ValueError, match=r"ray.worker_cpus=1(\.0)? .* = 4 CPU <= the 2 CPU of"):
         check_config(make_cfg(*TINY, *too_many))
     check_config(make_cfg(*TINY, *too_many, "ray.worker_cpus=0.5"))  # fits
     # a resource no node has
@@ -177,20 +178,20 @@ def test_weights_are_pushed_once_enough_updates_are_new(every, pushed_at, monkey
     """DDPG (TINY) makes 10 updates per 100-frame batch from frame 200 on; with
     weight_sync_every=15 only the batch that brings the new updates to 20 pushes."""
     events = []
-    real = rave_mujoco.push_policy_weights
+    real = loop.push_policy_weights
 
     def counting(collector, policy):
         events.append("push")
         real(collector, policy)
 
-    real_update = rave_mujoco.update_on_batch
+    real_update = loop.update_on_batch
 
     def update(cfg, agent, step, rb, counters, n_frames):  # each batch, before its push
         events.append(counters["frames"])
         return real_update(cfg, agent, step, rb, counters, n_frames)
 
-    monkeypatch.setattr(rave_mujoco, "push_policy_weights", counting)
-    monkeypatch.setattr(rave_mujoco, "update_on_batch", update)
+    monkeypatch.setattr(loop, "push_policy_weights", counting)
+    monkeypatch.setattr(loop, "update_on_batch", update)
     cfg = make_cfg(*TINY, "algorithm=ddpg", f"collector.weight_sync_every={every}")
     assert rave_mujoco.train(cfg, str(tmp_path))["updates"] == 30
     batches = [e for e in events if e != "push"]

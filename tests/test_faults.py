@@ -28,6 +28,7 @@ from test_recipe import TINY, make_cfg
 from torch import nn
 from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
 
+from torchrl_rave.recipe import loop
 from torchrl_rave.recipe.checkpoint import (
     CheckpointWriteError,
     DamagedCheckpoint,
@@ -279,8 +280,8 @@ class TestRecipe:
             made.append(env)
             return TransformedEnv(env, NaNObservation()) if len(made) == 2 else env
 
-        original = rave_mujoco.make_env
-        monkeypatch.setattr(rave_mujoco, "make_env", make_env)
+        original = loop.make_env
+        monkeypatch.setattr(loop, "make_env", make_env)
         cfg = make_cfg(*TINY, "algorithm=ddpg")
         with pytest.raises(
             NonFiniteEnvOutput,

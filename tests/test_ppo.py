@@ -10,6 +10,7 @@ import pytest
 import rave_mujoco
 from test_recipe import TINY, make_cfg, read_scalar
 
+from torchrl_rave.recipe import loop
 from torchrl_rave.recipe.agent import make_replay_buffer
 from torchrl_rave.recipe.checkpoint import RunCheckpoint
 
@@ -54,16 +55,16 @@ def test_a_total_between_batches_rounds_up_and_the_schedule_stays_positive(tmp_p
 
 
 def test_ppo_stops_at_a_signal_and_resumes_where_it_stopped(monkeypatch, tmp_path):
-    real = rave_mujoco.ppo_update
+    real = loop.ppo_update
 
     def then_stop(*args):
         out = real(*args)
         os.kill(os.getpid(), signal.SIGINT)  # the recipe checkpoints after this batch
         return out
 
-    monkeypatch.setattr(rave_mujoco, "ppo_update", then_stop)
+    monkeypatch.setattr(loop, "ppo_update", then_stop)
     first = rave_mujoco.train(make_cfg(*PPO), str(tmp_path))
-    monkeypatch.setattr(rave_mujoco, "ppo_update", real)
+    monkeypatch.setattr(loop, "ppo_update", real)
     assert [s for s, _ in read_scalar(tmp_path, "eval/return", "ppo")] == [200]
     assert np.isfinite(first["eval/return"])
     checkpoint = RunCheckpoint(tmp_path)

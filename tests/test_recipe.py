@@ -30,7 +30,7 @@ from torchrl_rave.recipe.agent import (
 )
 from torchrl_rave.recipe.checkpoint import RunCheckpoint
 from torchrl_rave.recipe.collect import NonFiniteEnvOutput
-from torchrl_rave.recipe.config import ALGORITHMS
+from torchrl_rave.recipe.config import ALGORITHMS, world_model_sizes
 from torchrl_rave.recipe.runs import value_logged_at
 
 RECIPES = Path(__file__).resolve().parents[1] / "recipes"
@@ -98,10 +98,10 @@ class TestAlgorithms:
             total = [sum(col[i][1] for col in w) for i in range(len(w[0]))]
             assert np.allclose(total, 1.0, atol=1e-5)
         if algorithm == "rave_constant":
-            alphas = read_scalar(tmp_path, "train/alpha", algorithm)
+            alphas = read_scalar(tmp_path, "train/rave_alpha", algorithm)
             assert all(v == pytest.approx(1.5) for _, v in alphas)
         if algorithm == "rave":
-            alphas = read_scalar(tmp_path, "train/alpha", algorithm)
+            alphas = read_scalar(tmp_path, "train/rave_alpha", algorithm)
             assert all(0.0 <= v <= 1.5 for _, v in alphas)
 
     def test_ddpg_has_one_critic_and_rave_four(self, tmp_path):
@@ -152,7 +152,7 @@ class TestConfigErrors:
             ("replay_buffer.batch_size=100000", "replay_buffer.batch_size=100000.*<= the replay"),
             ("estimator.horizon=-1", "estimator.horizon=-1"),
             ("exploration.epsilon=1.5", "exploration.epsilon=1.5"),
-            ("logger.backend=mlflow", "logger.backend='mlflow'.*one of"),
+            ("logger.backend=stdout", "logger.backend='stdout'.*one of"),
             ("network.num_critics=0", "network.num_critics=0"),
             ("threads=0", "threads=0 is invalid: expected null or an integer >= 1"),
         ],
@@ -183,7 +183,7 @@ class TestConfigErrors:
         assert cfg.replay_buffer.batch_size == 512
         assert cfg.replay_buffer.size == 1_000_000
         assert cfg.world_model.pretrain_frames == 10_000
-        assert cfg.world_model.transition_layers == 8
+        assert world_model_sizes(cfg)["transition_layers"] == 8
         assert cfg.exploration.epsilon == 0.05
         assert cfg.estimator.alpha == 1.5 and cfg.estimator.horizon == 3
         # command-line overrides still win over the preset

@@ -104,6 +104,35 @@ class TestRunReader:
         assert train_seconds(tmp_path / "missing") is None
 
 
+class TestOtherLoggers:
+    """The analyses read what every logger backend leaves in a run directory, or say why
+    they cannot."""
+
+    def test_a_tensorboard_run_reads_like_its_csv_twin(self, tmp_path):
+        import plot_curves
+
+        runs = {}
+        for backend in ("csv", "tensorboard"):
+            runs[backend] = tmp_path / backend
+            cfg = make_cfg(*TINY, "algorithm=ddpg", f"logger.backend={backend}")
+            rave_mujoco.train(cfg, str(runs[backend]))
+        assert not list(runs["tensorboard"].glob("*/scalars"))  # nothing but events
+        for metric in ("eval/return", "train/loss_critic", "eval/q_bias"):
+            steps, values = read_scalar(runs["tensorboard"], metric)
+            csv_steps, csv_values = read_scalar(runs["csv"], metric)
+            assert steps.tolist() == csv_steps.tolist()
+            np.testing.assert_allclose(values, csv_values, rtol=1e-6)  # events hold float32
+        text = plot_curves.main([f"tb={runs['tensorboard']}", "--out", str(tmp_path / "c.png")])
+        assert "| tb | 1 |" in text
+
+    def test_a_run_logged_nowhere_is_refused_with_the_reason(self, tmp_path):
+        rave_mujoco.train(make_cfg(*TINY, "algorithm=ddpg", "logger.backend="), str(tmp_path))
+        with pytest.raises(
+            FileNotFoundError, match=r"logged its metrics nowhere .*csv or tensorboard"
+        ):
+            read_scalar(tmp_path, "eval/return")
+
+
 def test_no_sys_path_edits_anywhere():
     offenders = [
         str(p.relative_to(ROOT))

@@ -14,7 +14,7 @@ from test_recipe import TINY
 from torchrl_rave.recipe.runs import read_scalar
 from torchrl_rave.recipe.stats import interval95
 
-RAVE_DIAGNOSTICS = ["alpha", "wm_transition_mse"] + [f"horizon_weight_h{h}" for h in range(4)]
+RAVE_DIAGNOSTICS = ["rave_alpha", "wm_transition_mse"] + [f"horizon_weight_h{h}" for h in range(4)]
 
 
 def write_study(tmp_path: Path, **fields) -> Path:
@@ -269,7 +269,7 @@ def test_report_of_value_error_contrasts_and_diagnostics_by_hand(tmp_path):
     diag = {  # after 150 frames (the last quarter) only the 200-frame values count
         "train/horizon_weight_h0": two([0, 0], [0.7, 0.5]),
         **{f"train/horizon_weight_h{h}": two([0, 0], [0.1, 1 / 6]) for h in (1, 2, 3)},
-        "train/alpha": two([0, 0], [1.0, 1.2]),
+        "train/alpha": two([0, 0], [1.0, 1.2]),  # its earlier name: the report reads both
         "train/candidate_variance_h0": two([0, 0], [1, 2]),
         **{f"train/candidate_variance_h{h}": two([0, 0], [2, 3]) for h in (1, 2)},
         "train/candidate_variance_h3": two([0, 0], [4, 8]),

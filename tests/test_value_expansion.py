@@ -112,7 +112,7 @@ class TestTD0Equivalence:
         td0 = loss.value_estimator.value_estimate(
             data.clone(), target_params=loss._cached_target_params
         )
-        kw = {"alpha": 0.0, "adaptive_alpha": False} if cls is RAVEValueEstimator else {}
+        kw = {"alpha": 0.0, "alpha_mode": "constant"} if cls is RAVEValueEstimator else {}
         loss.make_value_estimator(
             cls.for_loss(loss, world_model=world_model(N), gamma=0.99, horizon=0, **kw)
         )
@@ -307,7 +307,7 @@ class TestHandComputed:
 
     def test_terminal_real_transition_gives_reward(self):
         for cls in (MVEEstimator, STEVEEstimator, RAVEValueEstimator):
-            kw = {"adaptive_alpha": False} if cls is RAVEValueEstimator else {}
+            kw = {"alpha_mode": "constant"} if cls is RAVEValueEstimator else {}
             assert (
                 line_estimator(cls, horizon=3, **kw)
                 .value_estimate(line_batch(terminated=True))
@@ -350,7 +350,7 @@ class TestZeroVariance:
             data.clone()
         )
         rave = RAVEValueEstimator.for_loss(
-            loss, world_model=wm, gamma=0.95, horizon=3, alpha=0.0, adaptive_alpha=False
+            loss, world_model=wm, gamma=0.95, horizon=3, alpha=0.0, alpha_mode="constant"
         ).value_estimate(data.clone())
         torch.testing.assert_close(rave, steve)
 
@@ -490,7 +490,7 @@ class TestCallCounts:
         wm = world_model(N)
         loss = td3_loss(K)
         est = RAVEValueEstimator.for_loss(
-            loss, world_model=wm, gamma=0.9, horizon=H, adaptive_alpha=False, fast_calls=fast_calls
+            loss, world_model=wm, gamma=0.9, horizon=H, alpha_mode="constant", fast_calls=fast_calls
         )
         M = 7
         counts = {}

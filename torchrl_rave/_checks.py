@@ -2,6 +2,11 @@
 
 from __future__ import annotations
 
+import math
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
 import torch
 from tensordict import TensorDictBase
 from tensordict.utils import NestedKey
@@ -40,17 +45,62 @@ def get_checked(
     return value
 
 
+@dataclass(frozen=True)
+class Rule:
+    """A range rule, written once for every place that checks it: the library's
+    constructors (:meth:`check`) and the recipe's config schema (its ``expected`` text)."""
+
+    test: Callable[[Any], bool]
+    expected: str
+
+    def holds(self, value) -> bool:
+        try:
+            return bool(self.test(value))
+        except (TypeError, ValueError):
+            return False
+
+    def check(self, name: str, value):
+        """``value`` itself, or a ``ValueError`` naming ``name``."""
+        if not self.holds(value):
+            raise ValueError(f"{name} must be {self.expected}, got {value!r}")
+        return value
+
+
+def _is_int(v) -> bool:
+    return isinstance(v, int) and not isinstance(v, bool)
+
+
+def _is_number(v) -> bool:
+    return isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
+
+
+FINITE = Rule(_is_number, "a finite number")
+POSITIVE = Rule(lambda v: _is_number(v) and v > 0, "a finite number > 0")
+NON_NEGATIVE = Rule(lambda v: _is_number(v) and v >= 0, "a finite number >= 0")
+UNIT_INTERVAL = Rule(lambda v: _is_number(v) and 0 <= v <= 1, "in [0, 1]")
+POSITIVE_INT = Rule(lambda v: _is_int(v) and v >= 1, "an integer >= 1")
+NON_NEGATIVE_INT = Rule(lambda v: _is_int(v) and v >= 0, "an integer >= 0")
+
+
+def one_of(choices: list) -> Rule:
+    return Rule(lambda v: v in choices, f"one of {choices}")
+
+
+def optional(rule: Rule) -> Rule:
+    """``rule``, or ``None``."""
+    return Rule(lambda v: v is None or rule.test(v), f"null or {rule.expected}")
+
+
 def check_positive_int(name: str, value, minimum: int = 1) -> int:
-    if isinstance(value, bool) or not isinstance(value, int) or value < minimum:
-        raise ValueError(f"{name} must be an integer >= {minimum}, got {value!r}")
-    return value
+    rule = POSITIVE_INT if minimum == 1 else NON_NEGATIVE_INT if minimum == 0 else None
+    rule = rule or Rule(lambda v: _is_int(v) and v >= minimum, f"an integer >= {minimum}")
+    return rule.check(name, value)
 
 
 def check_non_negative(name: str, value) -> float:
-    value = float(value)
-    if not value >= 0:  # also catches NaN
-        raise ValueError(f"{name} must be >= 0, got {value!r}")
-    return value
+    if isinstance(value, torch.Tensor) and value.numel() == 1:
+        value = value.item()
+    return float(NON_NEGATIVE.check(name, value))
 
 
 def check_not_empty(tensordict: TensorDictBase, who: str) -> None:

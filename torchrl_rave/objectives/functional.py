@@ -22,6 +22,8 @@ from typing import Literal
 
 import torch
 
+from torchrl_rave._checks import NON_NEGATIVE, POSITIVE
+
 __all__ = [
     "imagined_rollout",
     "continuation_weights",
@@ -247,6 +249,16 @@ def expansion_target(
     else:
         raise ValueError(f"mix must be 'inverse_variance' or 'fixed', got {mix!r}")
     return (weights * clb).sum(-1), weights
+
+
+def check_alpha_parameters(alpha, alpha_error_scale) -> tuple[float, float]:
+    """The parameters of eq. 12, checked once for every user of them (the estimators,
+    :class:`~torchrl_rave.transforms.AdaptiveAlpha`, the recipe's schema shares the rules):
+    ``alpha`` a finite number >= 0, ``Z`` a finite number > 0."""
+    return (
+        float(NON_NEGATIVE.check("alpha", float(alpha))),
+        float(POSITIVE.check("alpha_error_scale (Z)", float(alpha_error_scale))),
+    )
 
 
 def adaptive_alpha(

@@ -12,7 +12,7 @@ from tensordict.utils import NestedKey
 from torchrl.objectives.value import ValueEstimatorBase
 
 from torchrl_rave._checks import (
-    check_non_negative,
+    UNIT_INTERVAL,
     check_not_empty,
     check_positive_int,
     first_param_dtype,
@@ -151,6 +151,10 @@ class ValueExpansionEstimator(ValueEstimatorBase):
             parameters, one batched matmul per layer for ``K`` critics) when their structure
             allows it; ``False`` always goes through the TensorDict modules (and ``vmap``).
             Both give the same numbers. Defaults to ``True``.
+        networks (TargetNetworks, optional): the actor and critics to call, already wired
+            (:meth:`for_loss` passes a loss's, whose target parameters it reads at call
+            time); when given, ``actor_params``, ``value_params`` and ``fast_calls`` are
+            its own. Defaults to ``None``: built from the arguments above.
         device (torch.device, optional): where the buffers live.
 
     Examples:
@@ -197,15 +201,13 @@ class ValueExpansionEstimator(ValueEstimatorBase):
         variance_eps: float = 1e-8,
         check_inputs: bool = True,
         fast_calls: bool = True,
+        networks: TargetNetworks | None = None,
         device: torch.device | None = None,
     ) -> None:
         super().__init__(value_network=value_network, differentiable=False, device=device)
         check_positive_int("horizon", horizon, minimum=0)
-        check_non_negative("alpha", alpha)
-        if not 0.0 <= float(gamma) <= 1.0:
-            raise ValueError(f"gamma must lie in [0, 1], got {gamma!r}")
-        if float(alpha_error_scale) <= 0:
-            raise ValueError(f"alpha_error_scale (Z) must be > 0, got {alpha_error_scale!r}")
+        alpha, alpha_error_scale = VF.check_alpha_parameters(alpha, alpha_error_scale)
+        UNIT_INTERVAL.check("gamma", float(gamma))
         if rollout not in ("sample", "mean"):
             raise ValueError(f"rollout must be 'sample' or 'mean', got {rollout!r}")
         if mix not in ("inverse_variance", "fixed"):
@@ -228,13 +230,15 @@ class ValueExpansionEstimator(ValueEstimatorBase):
         )
         # Held by reference: the loss (or the user) owns and trains these.
         self.__dict__["world_model"] = world_model
-        self.__dict__["networks"] = TargetNetworks(
-            actor_network,
-            value_network,
-            actor_params=actor_params,
-            value_params=value_params,
-            fast_calls=fast_calls,
-        )
+        if networks is None:
+            networks = TargetNetworks(
+                actor_network,
+                value_network,
+                actor_params=actor_params,
+                value_params=value_params,
+                fast_calls=fast_calls,
+            )
+        self.__dict__["networks"] = networks
         self.__dict__["diagnostics"] = None
 
     @property
@@ -274,9 +278,9 @@ class ValueExpansionEstimator(ValueEstimatorBase):
         estimator = cls(
             actor_network=networks.actor_network,
             value_network=networks.value_network,
+            networks=networks,
             **hyperparams,
         )
-        estimator.__dict__["networks"] = networks
         estimator._check_num_critics(networks.wired_num_critics())
         loss_keys = loss_module.tensor_keys
         forwarded = {
@@ -515,15 +519,15 @@ class RAVEValueEstimator(ValueExpansionEstimator):
     over sampled (DVE) rollouts of the probabilistic ensemble.
 
     By default ``alpha`` is adaptive (eq. 12: ``alpha(s, a) = max(0, alpha (1 - err / Z))``,
-    paper values ``alpha = 1.5``, ``Z = 1``); ``adaptive_alpha=False`` keeps it constant
+    paper values ``alpha = 1.5``, ``Z = 1``); ``alpha_mode="constant"`` keeps it constant
     (the paper's ablation uses 0, 0.5 and 2.0). ``alpha = 0`` is "STEVE on a probabilistic
     ensemble".
 
     Keyword Args:
         alpha (float): the constant ``alpha``. Defaults to 1.5.
-        adaptive_alpha (bool): eq. 12 when ``True`` (default), constant otherwise.
-        alpha_mode (str, optional): overrides ``adaptive_alpha`` (``"tensordict"`` reads
-            the :class:`~torchrl_rave.transforms.AdaptiveAlpha` transform's output).
+        alpha_mode (str): ``"adaptive"`` (eq. 12, the default), ``"constant"``, or
+            ``"tensordict"`` (read the :class:`~torchrl_rave.transforms.AdaptiveAlpha`
+            transform's output from the batch).
         **kwargs: see :class:`ValueExpansionEstimator`.
     """
 
@@ -535,12 +539,9 @@ class RAVEValueEstimator(ValueExpansionEstimator):
         *,
         horizon: int = 3,
         alpha: float = 1.5,
-        adaptive_alpha: bool = True,
-        alpha_mode: AlphaMode | None = None,
+        alpha_mode: AlphaMode = "adaptive",
         **kwargs,
     ) -> None:
-        if alpha_mode is None:
-            alpha_mode = "adaptive" if adaptive_alpha else "constant"
         super().__init__(
             horizon=horizon,
             rollout="sample",

@@ -52,6 +52,7 @@ from torchrl_rave.recipe.config import (
     num_critics,
     replay_buffer_size,
     resolve_config,
+    world_model_sizes,
 )
 from torchrl_rave.trainers import WorldModelTrainer
 
@@ -251,17 +252,13 @@ def make_critic(cfg: DictConfig, env) -> ValueOperator:
 
 
 def make_world_model(cfg: DictConfig, env) -> WorldModelEnsemble:
-    w = cfg.world_model
+    """The world model of ``world_model.size`` with its per-key overrides
+    (:func:`~torchrl_rave.recipe.config.world_model_sizes`)."""
     return WorldModelEnsemble.from_specs(
         env.observation_spec,
         env.action_spec,
-        num_models=w.num_models,
-        transition_cells=w.transition_cells,
-        transition_layers=w.transition_layers,
-        reward_cells=w.reward_cells,
-        reward_layers=w.reward_layers,
-        termination_cells=w.termination_cells,
-        termination_layers=w.termination_layers,
+        num_models=cfg.world_model.num_models,
+        **world_model_sizes(cfg),
     )
 
 
@@ -309,9 +306,7 @@ def make_loss(cfg: DictConfig, env, algo: Algorithm, actor, critic, world_model)
         )
         if algo.estimator == "rave":
             kwargs.update(
-                alpha=e.alpha,
-                adaptive_alpha=algo.adaptive_alpha,
-                alpha_error_scale=e.alpha_error_scale,
+                alpha=e.alpha, alpha_mode=algo.alpha_mode, alpha_error_scale=e.alpha_error_scale
             )
         loss.make_value_estimator(make_value_expansion_estimator(algo.estimator, loss, **kwargs))
     return loss, ForeachSoftUpdate(loss, tau=cfg.optim.tau)

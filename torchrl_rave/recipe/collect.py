@@ -279,7 +279,7 @@ def guarded_batches(
         try:
             hung = (
                 f"no batch came from the {cfg.collector.backend} collector running "
-                f"{cfg.env.name} within collector.timeout_s={timeout} s after frame "
+                f"{cfg.env.name} within collector.timeout_s={timeout:g} s after frame "
                 f"{frames()}: a worker hung"
             )
             with deadline(timeout, hung):

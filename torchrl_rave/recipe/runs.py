@@ -35,21 +35,61 @@ __all__ = [
 
 def read_scalar(run_dir: str | Path, metric: str) -> tuple[np.ndarray, np.ndarray]:
     """Steps (frames) and values of ``metric`` (e.g. ``"eval/return"``) in one run
-    directory, as the recipe's CSV logger writes them (``<run>/<exp>/scalars/<metric>.csv``).
+    directory, as the recipe's logger wrote them: CSV (``<run>/<exp>/scalars/<metric>.csv``)
+    or TensorBoard (``<run>/<exp>/events.out.tfevents.*``, read with the ``tensorboard``
+    package). A run logged to W&B (or not at all) is refused with a message that says so.
 
     A resumed run logs again the steps between its last checkpoint and where it stopped:
     the later value of a step wins, so a resumed run reads like an uninterrupted one.
     """
-    files = sorted(Path(run_dir).glob(f"*/scalars/{metric}.csv"))
-    if len(files) != 1:
+    run_dir = Path(run_dir)
+    files = sorted(run_dir.glob(f"*/scalars/{metric}.csv"))
+    if len(files) > 1:
         raise FileNotFoundError(
             f"{run_dir}: expected one <exp>/scalars/{metric}.csv, found {len(files)}"
         )
-    with open(files[0]) as f:
-        rows = [(int(step), float(value)) for step, value in csv.reader(f)]
+    if files:
+        with open(files[0]) as f:
+            rows = [(int(step), float(value)) for step, value in csv.reader(f)]
+    elif any(run_dir.glob("*/events.out.tfevents.*")):
+        rows = _tensorboard_rows(run_dir, metric)
+    else:
+        raise FileNotFoundError(f"{run_dir}: no {metric!r} logged{_backend_note(run_dir)}")
     latest = dict(rows)
     steps = np.array(sorted(latest), dtype=np.int64)
     return steps, np.array([latest[s] for s in steps], dtype=np.float64)
+
+
+def _tensorboard_rows(run_dir: Path, metric: str) -> list[tuple[int, float]]:
+    """``(step, value)`` of a scalar in a run's TensorBoard event files, in write order."""
+    try:
+        from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+    except ImportError as err:
+        raise ImportError(
+            f"{run_dir} was logged with logger.backend=tensorboard: reading it needs the "
+            "'tensorboard' package (pip install 'torchrl-rave[logging]')"
+        ) from err
+    (exp_dir,) = {p.parent for p in run_dir.glob("*/events.out.tfevents.*")}
+    events = EventAccumulator(str(exp_dir), size_guidance={"scalars": 0})
+    events.Reload()  # every event file of the directory, oldest first
+    if metric not in events.Tags()["scalars"]:
+        raise FileNotFoundError(f"{run_dir}: no {metric!r} in its TensorBoard events")
+    return [(int(e.step), float(e.value)) for e in events.Scalars(metric)]
+
+
+def _backend_note(run_dir: Path) -> str:
+    """Why a run directory has no metric files, from its saved config (plain JSON)."""
+    try:
+        backend = RunCheckpoint(run_dir).config()["logger"]["backend"]
+    except (FileNotFoundError, KeyError, TypeError, ValueError):
+        return " (no CSV or TensorBoard metrics here)"
+    if backend in ("csv", "tensorboard"):
+        return f" (it logged with logger.backend={backend})"
+    where = f"to {backend}" if backend else "nowhere (logger.backend='')"
+    return (
+        f": this run logged its metrics {where}; the analyses read runs logged with "
+        "logger.backend=csv or tensorboard"
+    )
 
 
 def train_seconds(run_dir: str | Path) -> int | None:

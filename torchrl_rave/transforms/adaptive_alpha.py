@@ -7,9 +7,8 @@ from tensordict import TensorDictBase
 from tensordict.utils import NestedKey
 from torchrl.envs.transforms import Transform
 
-from torchrl_rave._checks import check_non_negative
 from torchrl_rave.modules.world_model import WorldModelEnsemble
-from torchrl_rave.objectives.functional import adaptive_alpha
+from torchrl_rave.objectives.functional import adaptive_alpha, check_alpha_parameters
 
 __all__ = ["AdaptiveAlpha"]
 
@@ -25,7 +24,7 @@ class AdaptiveAlpha(Transform):
     Use it as a replay-buffer transform, so every sampled batch carries the per-sample
     alpha, and build the estimator with ``alpha_mode="tensordict"``; or call it on any
     batch. :class:`~torchrl_rave.objectives.RAVEValueEstimator` with its default
-    ``adaptive_alpha=True`` computes the same quantity itself (through
+    ``alpha_mode="adaptive"`` computes the same quantity itself (through
     :func:`~torchrl_rave.objectives.functional.adaptive_alpha`).
 
     The world model is held by reference (not registered), so a replay buffer's
@@ -63,9 +62,7 @@ class AdaptiveAlpha(Transform):
         action_key: NestedKey = "action",
         out_key: NestedKey = "rave_alpha",
     ) -> None:
-        check_non_negative("alpha", alpha)
-        if float(alpha_error_scale) <= 0:
-            raise ValueError(f"alpha_error_scale (Z) must be > 0, got {alpha_error_scale!r}")
+        alpha, alpha_error_scale = check_alpha_parameters(alpha, alpha_error_scale)
         super().__init__(
             in_keys=[observation_key, action_key, ("next", observation_key)],
             out_keys=[out_key],

@@ -1,0 +1,115 @@
+"""recipe.schema and recipe.config: the shipped schema is the recipe's config, and every
+config problem is reported at once, without a traceback, before any work."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+from omegaconf import OmegaConf
+from test_recipe import make_cfg
+
+from torchrl_rave.recipe.config import ConfigError, check_command_line, check_config
+from torchrl_rave.recipe.schema import PRESETS, default_config, schema_fields
+
+RECIPE = Path(__file__).resolve().parents[1] / "recipes" / "rave_mujoco.py"
+
+
+class TestSchema:
+    def test_config_yaml_only_selects_the_schema(self):
+        for preset in PRESETS:
+            composed = OmegaConf.to_container(make_cfg(f"preset={preset}"))
+            assert composed == OmegaConf.to_container(default_config(preset=preset))
+
+    def test_every_key_has_help_and_is_a_key_of_the_recipe(self):
+        keys = dict(schema_fields())
+        for key, f in keys.items():
+            assert f.metadata.get("help"), key
+
+        def leaves(node, prefix=""):
+            for k, v in node.items():
+                if isinstance(v, dict) and f"{prefix}{k}" not in keys:
+                    yield from leaves(v, f"{prefix}{k}.")
+                else:
+                    yield f"{prefix}{k}"
+
+        assert sorted(leaves(OmegaConf.to_container(make_cfg()))) == sorted(keys)
+        assert len(keys) == 74
+
+    def test_defaults_pass_their_own_checks(self):
+        for preset in PRESETS:
+            for algorithm in ("ddpg", "rave", "td3", "sac", "ppo"):
+                check_config(default_config(preset=preset, algorithm=algorithm))
+
+    def test_paper_preset_sizes_come_from_the_module_table(self):
+        from torchrl_rave.modules.world_model import WORLD_MODEL_SIZES
+        from torchrl_rave.recipe.config import world_model_sizes
+
+        cfg = default_config(preset="paper")
+        assert world_model_sizes(cfg) == WORLD_MODEL_SIZES["paper"]
+        wider = default_config("world_model.transition_cells=32", preset="paper")
+        assert world_model_sizes(wider) == {**WORLD_MODEL_SIZES["paper"], "transition_cells": 32}
+
+
+class TestAllProblemsAtOnce:
+    def test_types_ranges_cross_key_rules_and_unknown_keys_together(self):
+        cfg = make_cfg("collector.frames_per_batch=20000", "optim.gamma=1.5",
+                       "compile.enabled=maybe", "env.action_noise=-1")  # fmt: skip
+        OmegaConf.set_struct(cfg, False)
+        cfg.estimator.hoirzon = 3
+        with pytest.raises(ConfigError) as caught:
+            check_config(cfg)
+        assert sorted(caught.value.problems) == sorted([
+            "config key optim.gamma=1.5 is invalid: expected in [0, 1]",
+            "config key compile.enabled='maybe' is invalid: expected a value of type bool",
+            "config key env.action_noise=-1 is invalid: expected a finite number >= 0",
+            "config key estimator.hoirzon is not a key of the recipe",
+            "config key collector.frames_per_batch=20000 is invalid: expected <= "
+            "collector.total_frames (15000)",
+        ])  # fmt: skip
+        assert str(caught.value).startswith("5 problems in the config:\n  ")
+
+    def test_a_value_that_converts_is_converted(self):
+        cfg = make_cfg("collector.total_frames='2000'", "optim.gamma=1")
+        check_config(cfg)
+        assert cfg.collector.total_frames == 2000 and isinstance(cfg.optim.gamma, float)
+
+    @pytest.mark.parametrize(
+        "override, problem",
+        [
+            ("optim.lr_actor=inf", "optim.lr_actor=inf is invalid: expected a finite number > 0"),
+            ("env.reward_scale=inf", "env.reward_scale=inf is invalid"),
+            ("exploration.sigma=inf", "exploration.sigma=inf is invalid"),
+            ("world_model.lr=abc", "world_model.lr='abc' is invalid: expected a value of type float"),
+            ("world_model.reward_layers=1", "world_model.reward_layers=1 is invalid: expected an integer >= 2"),
+        ],
+    )  # fmt: skip
+    def test_values_that_cannot_work_are_named(self, override, problem):
+        with pytest.raises(ConfigError, match=problem.replace("[", r"\[")):
+            check_config(make_cfg(override))
+
+    def test_command_line_names_unknown_keys_beside_bad_values(self):
+        with pytest.raises(ConfigError) as caught:
+            check_command_line(["collector.total_frames=abc", "optim.gamma=1.5",
+                                "estimator.hoirzon=3", "hydra.run.dir=x", "preset=paper"])  # fmt: skip
+        assert len(caught.value.problems) == 3
+        check_command_line(["env.name=Hopper-v5", "ray.worker_resources.actors=1"])  # fine
+
+    def test_three_bad_keys_one_message_no_traceback_no_work(self, tmp_path):
+        run = tmp_path / "run"
+        done = subprocess.run(
+            [sys.executable, str(RECIPE), "collector.total_frames=abc", "optim.gamma=1.5",
+             "estimator.hoirzon=3", f"hydra.run.dir={run}"],
+            capture_output=True, text=True, timeout=300,
+        )  # fmt: skip
+        assert done.returncode == 1
+        assert "Traceback" not in done.stderr + done.stdout
+        assert done.stderr.strip().splitlines() == [
+            "3 problems in the config:",
+            "  config key estimator.hoirzon is not a key of the recipe",
+            "  config key collector.total_frames='abc' is invalid: expected a value of type int",
+            "  config key optim.gamma=1.5 is invalid: expected in [0, 1]",
+        ]
+        assert not run.exists()  # nothing was built or written

@@ -1,0 +1,270 @@
+"""The recipe's training loop: one run of any ``algorithm=``, from a config, into a run
+directory, resumable from its checkpoints.
+
+:func:`train` is what ``python recipes/rave_mujoco.py`` and the ``torchrl-rave-train``
+command run, with the pieces of :mod:`torchrl_rave.recipe`; call it from a script with a
+config from :func:`~torchrl_rave.recipe.schema.default_config`.
+
+Examples:
+    >>> cfg = default_config("collector.total_frames=200", algorithm="ddpg")  # doctest: +SKIP
+    >>> train(cfg, "runs/ddpg")["eval/return"]  # doctest: +SKIP
+"""
+
+from __future__ import annotations
+
+import time
+from collections import defaultdict
+from pathlib import Path
+
+import torch
+import tqdm
+from omegaconf import DictConfig, OmegaConf
+from torchrl.data import ReplayBuffer
+
+from torchrl_rave.recipe.agent import (
+    Agent,
+    critic_loss_key,
+    make_agent,
+    make_env,
+    make_replay_buffer,
+    q_at_points,
+)
+from torchrl_rave.recipe.checkpoint import (
+    RunCheckpoint,
+    exclusive_run,
+    saved_config,
+)
+from torchrl_rave.recipe.collect import (
+    NonFiniteEnvOutput,
+    StopRequest,
+    check_finite,
+    guarded_batches,
+    make_collector,
+    push_policy_weights,
+    shutdown_on_error,
+    stop_run,
+)
+from torchrl_rave.recipe.config import (
+    apply_process_settings,
+    check_config,
+    check_resumable,
+    replay_buffer_size,
+    resolve_config,
+)
+from torchrl_rave.recipe.evaluate import evaluate_agent, make_logger
+from torchrl_rave.recipe.schema import default_config, defaults  # noqa: F401 (the example)
+from torchrl_rave.recipe.update import make_agent_step, ppo_update
+
+
+def train(cfg: DictConfig, run_dir: str) -> dict[str, float]:
+    """Runs (or, with ``cfg.resume`` set, continues) one training run; returns the final
+    evaluation metrics. Everything is written under ``run_dir``, which no other process
+    may train into meanwhile (:func:`exclusive_run`)."""
+    check_config(cfg)
+    if not cfg.resume:
+        Path(run_dir).mkdir(parents=True, exist_ok=True)
+    with exclusive_run(cfg.resume or run_dir):
+        return _train(cfg, run_dir)
+
+
+def _train(cfg: DictConfig, run_dir: str) -> dict[str, float]:
+    cfg = resolve_config(cfg).copy()  # ppo: its rollout sets the collector's batch
+    if cfg.resume:
+        run_dir = cfg.resume
+        saved = saved_config(run_dir, defaults())
+        check_resumable(cfg, saved)
+        cfg.replay_buffer.size = saved.replay_buffer.size
+    else:
+        cfg.replay_buffer.size = replay_buffer_size(cfg)  # fixed once, so resuming keeps it
+    device = torch.device(cfg.collector.device or ("cuda" if torch.cuda.is_available() else "cpu"))
+    apply_process_settings(cfg)
+    torch.manual_seed(cfg.env.seed)
+
+    # Environments, agent, replay buffer
+    env, eval_env = make_env(cfg, device), make_env(cfg, device)
+    agent = make_agent(cfg, env, device)
+    rb = make_replay_buffer(cfg, device)
+    update_agent = None
+    if not agent.algorithm.on_policy:
+        update_agent = make_agent_step(cfg, agent.loss, agent.optimizers, agent.target_updater)
+
+    # Counters and checkpoints; a resumed run restores everything it saved. Before any
+    # work: the checkpoints can be written, and the disk has room for one.
+    checkpoint = RunCheckpoint(run_dir)
+    checkpoint.preflight(agent.checkpoint_bytes(cfg.replay_buffer.size, env.fake_tensordict()))
+    counters = {"frames": 0, "updates": 0, "update_budget": 0.0}
+    counters.update(next_eval=cfg.eval.interval, next_checkpoint=cfg.checkpoint.interval)
+    logger_state: dict = {}
+    if cfg.resume:
+        state = dict(counters=counters, replay_buffer=rb, logger=logger_state)
+        checkpoint.load(**state, **agent.state_components())
+    logger = make_logger(cfg, run_dir, logger_state or None)
+    # A resumed run restarts its episode; a new seed keeps it from replaying old ones.
+    env.set_seed(cfg.env.seed + counters["frames"])
+
+    def save_checkpoint():
+        return checkpoint.save(
+            counters["frames"],
+            config=OmegaConf.to_container(cfg),
+            counters=counters,
+            replay_buffer=rb,
+            logger={} if logger is None else logger.state_dict(),
+            **agent.state_components(),
+        )
+
+    # Main loop
+    total = cfg.collector.total_frames
+    last_eval = {}
+    pbar = tqdm.tqdm(
+        total=total, initial=counters["frames"], unit="frames", disable=not cfg.logger.progress_bar
+    )
+    start, frames_at_start = time.perf_counter(), counters["frames"]
+    collector = None
+    with StopRequest() as stop, shutdown_on_error(lambda: collector):
+        if counters["frames"] < total:
+            collector = make_collector(cfg, env, agent.policy, device, counters["frames"])
+            synced_at = counters["updates"]  # the workers start with the current weights
+            t_collect = time.perf_counter()
+            batches = guarded_batches(
+                collector, cfg, save_checkpoint, lambda: counters["frames"], run_dir
+            )
+            for batch in batches:
+                data = batch.reshape(-1)
+                collect_s = time.perf_counter() - t_collect
+                bad = check_finite(data)
+                if bad is not None:
+                    where = stop_run(collector, save_checkpoint)
+                    raise NonFiniteEnvOutput(
+                        f"{cfg.env.name} produced NaN/inf in {bad!r} within frames "
+                        f"{counters['frames']}-{counters['frames'] + data.numel()}; the run "
+                        f"stopped before that batch reached the replay buffer; {where} "
+                        f"(frame {counters['frames']}): fix the env and rerun with "
+                        f"resume={run_dir}"
+                    )
+                counters["frames"] += data.numel()
+                t_update = time.perf_counter()
+                if agent.algorithm.on_policy:  # GAE runs along each worker's time axis
+                    acc = ppo_update(cfg, agent, rb, batch, counters)
+                else:
+                    rb.extend(data)
+                    if agent.world_model_trainer is not None:
+                        agent.world_model_trainer.extend(data)
+                    acc = update_on_batch(cfg, agent, update_agent, rb, counters, data.numel())
+                update_s = time.perf_counter() - t_update
+                if counters["updates"] - synced_at >= cfg.collector.weight_sync_every:
+                    push_policy_weights(collector, agent.policy)
+                    synced_at = counters["updates"]
+
+                metrics = {k: torch.stack(v).mean().item() for k, v in acc.items()}
+                done = data["next", "done"].squeeze(-1)
+                if done.any():
+                    metrics["train/episode_reward"] = (
+                        data["next", "episode_reward"][done].mean().item()
+                    )
+                n_updates = len(acc.get("train/loss_critic", ()))
+                metrics["time/collect_s"] = collect_s
+                metrics["time/update_s"] = update_s
+                if n_updates:
+                    metrics["time/updates_per_s"] = n_updates / max(update_s, 1e-9)
+                frames_now = counters["frames"]
+                metrics["time/fps"] = (frames_now - frames_at_start) / (time.perf_counter() - start)
+                if frames_now >= counters["next_eval"] or frames_now >= total:
+                    t_eval = time.perf_counter()
+                    eval_env.set_seed(cfg.env.seed + 1_000_003 + frames_now)
+                    try:
+                        last_eval = evaluate_agent(cfg, eval_env, agent)
+                    except NonFiniteEnvOutput as err:
+                        where = stop_run(collector, save_checkpoint)
+                        raise NonFiniteEnvOutput(
+                            f"{cfg.env.name}: {err} at frame {frames_now}; {where}: fix the "
+                            f"env and rerun with resume={run_dir}"
+                        ) from None
+                    metrics.update(last_eval)
+                    metrics["time/eval_s"] = time.perf_counter() - t_eval
+                    while counters["next_eval"] <= frames_now:
+                        counters["next_eval"] += cfg.eval.interval
+                metrics.update(q_at_points(agent.loss, cfg.logger.q_points, cfg.env.reward_scale))
+                if logger is not None:
+                    for key, value in metrics.items():
+                        logger.log_scalar(key, value, step=frames_now)
+                pbar.update(data.numel())
+                if last_eval:
+                    pbar.set_postfix(eval_return=f"{last_eval['eval/return']:.1f}")
+                if (
+                    frames_now >= counters["next_checkpoint"]
+                    or frames_now >= total
+                    or stop.requested
+                ):
+                    while counters["next_checkpoint"] <= frames_now:
+                        counters["next_checkpoint"] += cfg.checkpoint.interval
+                    save_checkpoint()
+                if stop.requested:
+                    break
+                t_collect = time.perf_counter()
+    pbar.close()
+    if collector is not None:
+        collector.shutdown()
+    if stop.requested:
+        print(f"stopped at frame {counters['frames']}; resume with resume={run_dir}")
+        return last_eval
+    if not last_eval:  # a run resumed from its final checkpoint
+        eval_env.set_seed(cfg.env.seed + 1_000_003 + counters["frames"])
+        last_eval = evaluate_agent(cfg, eval_env, agent)
+    elapsed = time.perf_counter() - start
+    print(
+        f"{cfg.algorithm} on {cfg.env.name}, seed {cfg.env.seed}: {counters['frames']} frames, "
+        f"{counters['updates']} updates, {elapsed:.0f} s this session\n"
+        f"  eval/return         {last_eval['eval/return']:.1f} ± "
+        f"{last_eval['eval/return_std']:.1f} over {cfg.eval.episodes} episodes\n"
+        f"  eval/episode_length {last_eval['eval/episode_length']:.1f}\n"
+        f"  eval/falling_rate   {last_eval['eval/falling_rate']:.2f}\n"
+        f"  run directory       {run_dir}"
+    )
+    if logger is not None and hasattr(logger, "shutdown"):
+        logger.shutdown()
+    return {**last_eval, "frames": counters["frames"], "updates": counters["updates"]}
+
+
+def update_on_batch(
+    cfg: DictConfig, agent: Agent, update_agent, rb: ReplayBuffer, counters: dict, n_frames: int
+) -> dict[str, list[torch.Tensor]]:
+    """The updates a batch of ``n_frames`` new frames pays for (``optim.utd_ratio`` per
+    frame once the learning starts); returns the training metrics of each update."""
+    acc = defaultdict(list)
+    start_frames = max(cfg.collector.init_random_frames, cfg.replay_buffer.batch_size)
+    wm_trainer = agent.world_model_trainer
+    if wm_trainer is not None:
+        start_frames = max(start_frames, cfg.world_model.pretrain_frames)
+    if counters["frames"] < start_frames:
+        return acc
+    if wm_trainer is not None:
+        wm_trainer.pretrain(rb)  # once, as soon as F frames are stored
+    new_frames = min(n_frames, counters["frames"] - start_frames)
+    counters["update_budget"] += cfg.optim.utd_ratio * new_frames
+    n_updates = int(counters["update_budget"])
+    counters["update_budget"] -= n_updates
+    policy_delay = cfg.td3.policy_delay if agent.algorithm.loss == "td3" else 1
+    critic_key = critic_loss_key(agent.loss)
+    for _ in range(n_updates):
+        wm = None if wm_trainer is None else wm_trainer.step(rb)
+        if wm is not None:
+            for key in ("transition_nll", "transition_mse", "reward_nll", "reward_mse"):
+                acc[f"train/wm_{key}"].append(wm[key])
+            acc["train/wm_termination_bce"].append(wm["termination_bce"])
+        step_actor = counters["updates"] % policy_delay == 0
+        out = update_agent(rb.sample(), step_actor)
+        counters["updates"] += 1
+        acc["train/loss_critic"].append(out[critic_key].detach())
+        if step_actor:
+            acc["train/loss_actor"].append(out["loss_actor"].detach())
+        if "alpha" in out.keys():  # noqa: SIM118 (a TensorDict): SACLoss's temperature
+            acc["train/sac_temperature"].append(out["alpha"].detach())
+        if agent.algorithm.model_based:
+            estimator = agent.loss.value_estimator
+            diag, keys = estimator.diagnostics, estimator.tensor_keys
+            acc["train/rave_alpha"].append(diag[keys.alpha].mean())  # eq. 12's confidence
+            for h, w in enumerate(diag[keys.horizon_weights].mean(0).unbind(-1)):
+                acc[f"train/horizon_weight_h{h}"].append(w)
+            for h, v in enumerate(diag[keys.horizon_variance].mean(0).unbind(-1)):
+                acc[f"train/candidate_variance_h{h}"].append(v)
+    return acc
