@@ -71,7 +71,7 @@ class TestPlotCurves:
         with pytest.raises(FileNotFoundError, match="no run directory matches"):
             parse_groups([f"x={tmp_path}/missing*"])
         (tmp_path / "empty").mkdir()
-        with pytest.raises(FileNotFoundError, match="expected one"):
+        with pytest.raises(FileNotFoundError, match=r"no 'eval/return' logged \(no CSV or Tens"):
             read_scalar(tmp_path / "empty", "eval/return")
 
 

@@ -294,8 +294,15 @@ class TestCheckpoints:
         evals = read_scalar(tmp_path, "eval/return", "rave")
         assert evals[-1][0] == 3000
 
-    def test_ctrl_c_checkpoints_at_the_batch_end_and_exits_cleanly(self, tmp_path):
-        overrides = [*TINY, "algorithm=ddpg", "collector.total_frames=100000"]
+    @pytest.mark.parametrize(
+        "stop, first_eval",
+        [(signal.SIGINT, "eval.interval=200"), (signal.SIGTERM, "eval.interval=100000")],
+        ids=["ctrl-c", "sigterm-before-any-evaluation"],
+    )
+    def test_a_stop_checkpoints_at_the_batch_end_and_exits_cleanly(
+        self, stop, first_eval, tmp_path
+    ):
+        overrides = [*TINY, "algorithm=ddpg", "collector.total_frames=100000", first_eval]
         proc = subprocess.Popen(
             [
                 sys.executable,
@@ -311,7 +318,7 @@ class TestCheckpoints:
         deadline = time.time() + 240
         while not scalars.exists() and proc.poll() is None and time.time() < deadline:
             time.sleep(0.2)
-        proc.send_signal(signal.SIGINT)
+        proc.send_signal(stop)
         out, _ = proc.communicate(timeout=240)
         assert proc.returncode == 0
         frames = RunCheckpoint(tmp_path).read("counters")["frames"]
@@ -354,6 +361,26 @@ class TestCheckpoints:
             ValueError, match="algorithm is 'td3' but the run was started with 'ddpg'"
         ):
             rave_mujoco.train(make_cfg(*overrides, "algorithm=td3", f"resume={tmp_path}"), "x")
+
+    def test_resume_refuses_overrides_it_would_ignore(self, tmp_path):
+        """A resumed run's buffer was allocated at its size, and its config is the saved
+        one: replay_buffer.size= and preset= would change nothing, so they are refused."""
+        from torchrl_rave.recipe.config import ConfigError
+
+        overrides = [*TINY, "algorithm=ddpg", "collector.total_frames=200"]
+        rave_mujoco.train(make_cfg(*overrides), str(tmp_path))
+        resumed = make_cfg(*overrides, "replay_buffer.size=50", f"resume={tmp_path}")
+        with pytest.raises(
+            ConfigError, match="replay_buffer.size is 50 but the run was started with 200"
+        ):
+            rave_mujoco.train(resumed, "x")
+        done = subprocess.run(
+            [sys.executable, str(RECIPES / "rave_mujoco.py"), f"resume={tmp_path}", "preset=paper"],
+            capture_output=True, text=True, timeout=300,
+        )  # fmt: skip
+        assert done.returncode == 1 and "Traceback" not in done.stderr
+        assert "preset= does not apply to a resumed run" in done.stderr
+        assert RunCheckpoint(tmp_path).read("counters")["frames"] == 200  # nothing ran
 
 
 class TestDeterminism:

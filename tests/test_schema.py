@@ -63,7 +63,7 @@ class TestAllProblemsAtOnce:
             check_config(cfg)
         assert sorted(caught.value.problems) == sorted([
             "config key optim.gamma=1.5 is invalid: expected in [0, 1]",
-            "config key compile.enabled='maybe' is invalid: expected a value of type bool",
+            "config key compile.enabled='maybe' is invalid: expected true or false",
             "config key env.action_noise=-1 is invalid: expected a finite number >= 0",
             "config key estimator.hoirzon is not a key of the recipe",
             "config key collector.frames_per_batch=20000 is invalid: expected <= "
@@ -89,6 +89,15 @@ class TestAllProblemsAtOnce:
     def test_values_that_cannot_work_are_named(self, override, problem):
         with pytest.raises(ConfigError, match=problem.replace("[", r"\[")):
             check_config(make_cfg(override))
+
+    @pytest.mark.skipif(__import__("torch").cuda.is_available(), reason="a CUDA device is here")
+    def test_cuda_on_a_torch_without_it_is_named(self):
+        with pytest.raises(
+            ConfigError, match="collector.device='cuda': this torch has no usable CUDA"
+        ):
+            check_config(make_cfg("collector.device=cuda"))
+        with pytest.raises(ConfigError, match="collector.device='gpu'"):
+            check_config(make_cfg("collector.device=gpu"))
 
     def test_command_line_names_unknown_keys_beside_bad_values(self):
         with pytest.raises(ConfigError) as caught:

@@ -17,6 +17,8 @@ from omegaconf import DictConfig, OmegaConf
 from torchrl.checkpoint import Checkpoint, CheckpointAdapter, GlobalRNGState
 from torchrl.data import ReplayBuffer
 
+from torchrl_rave.recipe.config import ConfigError
+
 __all__ = [
     "CheckpointWriteError",
     "DamagedCheckpoint",
@@ -413,9 +415,16 @@ def saved_config(run_dir: str | Path, defaults: DictConfig | None = None) -> Dic
 def config_for_resume(
     run_dir: str | Path, overrides: list[str], defaults: DictConfig | None = None
 ) -> DictConfig:
-    """The config a run was saved with, with command-line ``overrides`` applied on top."""
+    """The config a run was saved with, with command-line ``overrides`` applied on top. A
+    ``preset=`` is refused: the run continues with the config it was saved with, and a
+    preset would silently change nothing (name the keys to change instead)."""
     saved = saved_config(run_dir, defaults)
-    keep = [o for o in overrides if o.split("=", 1)[0].lstrip("+~") not in ("resume", "preset")]
+    if any(o.split("=", 1)[0].lstrip("+~") == "preset" for o in overrides):
+        raise ConfigError([
+            f"resume={str(run_dir)!r}: preset= does not apply to a resumed run, which keeps "
+            "the config it was saved with; set the keys to change one by one"
+        ])  # fmt: skip
+    keep = [o for o in overrides if o.split("=", 1)[0].lstrip("+~") != "resume"]
     cfg = OmegaConf.merge(saved, OmegaConf.from_dotlist(keep))
     cfg.resume = str(run_dir)
     return cfg

@@ -99,6 +99,10 @@ def _check_keys(cfg: DictConfig, problems: list[str]) -> set[str]:
             continue
         if isinstance(value, DictConfig):
             value = OmegaConf.to_container(value)
+        if f.type == "bool" and not isinstance(value, bool):  # not OmegaConf's "yes", "on", 1
+            problems.append(_invalid(key, value, "true or false"))
+            bad.add(key)
+            continue
         try:
             OmegaConf.update(typed, key, value, merge=False)
         except OmegaConfBaseException:
@@ -385,6 +389,7 @@ FIXED_ON_RESUME = [
     "env.name",
     "env.action_noise",
     "network",
+    "replay_buffer.size",  # the buffer was allocated at this size
     "world_model.num_models",
     "ppo.rollout_frames",
     "estimator.horizon",
@@ -397,9 +402,11 @@ def check_resumable(cfg: DictConfig, saved: DictConfig) -> None:
     ]
     new, old = world_model_sizes(cfg), world_model_sizes(saved)
     changed += [(f"world_model.{k}", new[k], old[k]) for k in new]
-    for key, new_value, old_value in changed:
-        if new_value != old_value:
-            raise ValueError(
-                f"resume={cfg.resume!r}: config key {key} is {new_value!r} but the run was "
-                f"started with {old_value!r}; it cannot change on resume"
-            )
+    problems = [
+        f"resume={cfg.resume!r}: config key {key} is {new_value!r} but the run was started "
+        f"with {old_value!r}; it cannot change on resume"
+        for key, new_value, old_value in changed
+        if new_value != old_value
+    ]
+    if problems:
+        raise ConfigError(problems)

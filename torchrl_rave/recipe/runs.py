@@ -19,7 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
-from torchrl_rave.recipe.checkpoint import PREFIX, RunCheckpoint
+from torchrl_rave.recipe.checkpoint import PREFIX, DamagedCheckpoint, RunCheckpoint
 
 __all__ = [
     "Cell",
@@ -81,7 +81,7 @@ def _backend_note(run_dir: Path) -> str:
     """Why a run directory has no metric files, from its saved config (plain JSON)."""
     try:
         backend = RunCheckpoint(run_dir).config()["logger"]["backend"]
-    except (FileNotFoundError, KeyError, TypeError, ValueError):
+    except (OSError, KeyError, TypeError, ValueError, DamagedCheckpoint):
         return " (no CSV or TensorBoard metrics here)"
     if backend in ("csv", "tensorboard"):
         return f" (it logged with logger.backend={backend})"
