@@ -3,6 +3,8 @@ recipe on it."""
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import gymnasium as gym
 import numpy as np
 import pytest
@@ -36,6 +38,23 @@ def test_spaces_and_the_standing_start():
     # the body positions block ends with the ankles, which the reward measures
     assert np.allclose(obs[[32, 34]], env.unwrapped.leg_x())
     assert env.spec.max_episode_steps == 1000
+
+
+def test_opensim_writes_no_log_into_the_package(tmp_path):
+    """OpenSim would open opensim.log beside the first model it loads: the package's
+    assets. A fresh process builds and steps the env; nothing appears there."""
+    import subprocess
+    import sys
+
+    assets = Path(L.model_path()).parent
+    log = assets / "opensim.log"
+    log.unlink(missing_ok=True)
+    # the env logs errors only; a model loaded at OpenSim's default level logs plenty
+    code = ("import gymnasium as gym, opensim, torchrl_rave.envs.learn_to_run as L; "
+            "e = gym.make('LearnToRun-v0'); e.reset(seed=0); e.step(e.action_space.sample()); "
+            "opensim.Logger.setLevelString('info'); opensim.Model(L.model_path()).initSystem()")  # fmt: skip
+    subprocess.run([sys.executable, "-c", code], cwd=tmp_path, check=True, capture_output=True)
+    assert not log.exists() and not list(tmp_path.iterdir())
 
 
 def test_same_seed_same_start_and_same_steps():

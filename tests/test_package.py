@@ -139,6 +139,37 @@ def test_the_wheel_ships_its_data_and_no_logs(fresh_venv):
     assert not [n for n in names if n.endswith(".log")]
 
 
+def test_the_wheel_carries_its_licences_version_and_types(fresh_venv):
+    import zipfile
+
+    import torchrl_rave
+
+    wheel = zipfile.ZipFile(fresh_venv[3])
+    (metadata,) = [n for n in wheel.namelist() if n.endswith(".dist-info/METADATA")]
+    meta = wheel.read(metadata).decode()
+    assert f"Version: {torchrl_rave.__version__}\n" in meta
+    assert "License-Expression: MIT" in meta
+    assert (
+        "License-File: LICENSE" in meta and "License-File: torchrl_rave/envs/assets/NOTICE" in meta
+    )
+    assert "torchrl_rave/py.typed" in wheel.namelist()
+
+
+def test_the_sdist_holds_the_package_and_no_tests(tmp_path):
+    import tarfile
+
+    subprocess.run(
+        [sys.executable, "-c", f"from setuptools import build_meta; build_meta.build_sdist({str(tmp_path)!r})"],
+        cwd=ROOT, check=True, capture_output=True,
+    )  # fmt: skip
+    (sdist,) = tmp_path.glob("torchrl_rave-*.tar.gz")
+    with tarfile.open(sdist) as archive:
+        names = [n.split("/", 1)[1] for n in archive.getnames() if "/" in n]
+    assert "pyproject.toml" in names and "LICENSE" in names
+    assert "torchrl_rave/recipe/schema.py" in names and "torchrl_rave/envs/assets/NOTICE" in names
+    assert not [n for n in names if n.startswith(("tests/", "recipes/", "results/"))]
+
+
 def _imports(path: Path) -> list[tuple[str, bool]]:
     """``(top-level module, imported at module level)`` of every absolute import."""
     tree = ast.parse(path.read_text())

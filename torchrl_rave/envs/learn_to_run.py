@@ -44,6 +44,10 @@ import numpy as np
 import opensim
 from gymnasium import spaces
 
+# OpenSim opens its log file (opensim.log) in the directory of the first model it loads:
+# the installed package's assets. Its messages still reach the console.
+opensim.Logger.removeFileSink()
+
 ENV_ID = "LearnToRun-v0"
 MODEL_FILE = "gait9dof18musc.osim"
 STEP_SECONDS = 0.01
