@@ -96,6 +96,20 @@ def differences(a: list, b: list, digits: int = 0) -> list[str] | None:
     return [fmt_interval(*difference95(x, y), "+", digits) for x, y in zip(a, b, strict=True)]
 
 
+def section(caption: str, columns: list[str], rows: list[str]) -> list[str]:
+    """A markdown table of ``rows`` under its caption and ``columns``; nothing without rows."""
+    if not rows:
+        return []
+    return [
+        "",
+        caption,
+        "",
+        "| " + " | ".join(columns) + " |",
+        "| --- " * len(columns) + "|",
+        *rows,
+    ]
+
+
 def report(args) -> str:
     study = load_study(args.config)
     out = args.figures
@@ -196,86 +210,55 @@ def report(args) -> str:
         study_figures(
             out / f"{study.name}_{task}", f"{task}, {study.name}", curves, diag, falling, q_bias
         )
-    frames = " | ".join(f"at {f:,}" for f in at)
-    if versus:
-        lines += [
-            "",
-            f"RAVE's mean minus each other algorithm's, with {WELCH}.",
-            "",
-            "| task | difference | " + frames + " |",
-            "| --- " * (2 + len(at)) + "|",
-            *versus,
-        ]
-    if value_rows:
-        lines += [
-            "",
-            "Value error: the critics' estimate of Q(s_t, pi(s_t)) minus the discounted "
-            "Monte-Carlo return of the evaluation episodes (`eval/q_bias`; which states "
-            "count, and how each algorithm's critics are read, is in recipes/README.md), "
-            "its root mean square and the correlation of the two; mean ± 95 % t-interval "
-            "over seeds.",
-            "",
-            "| task | algorithm | seeds | "
-            + " | ".join(f"{k} at {f:,}" for k in ("q_bias", "q_rmse", "q_corr") for f in at)
-            + " |",
-            "| --- " * (3 + 3 * len(at)) + "|",
-            *value_rows,
-        ]
-    if versus_more:
-        lines += [
-            "",
-            f"RAVE minus each other algorithm: falling rate and value bias, with {WELCH}.",
-            "",
-            "| task | difference | "
-            + " | ".join(f"{k} at {f:,}" for k in ("falling rate", "q_bias") for f in at)
-            + " |",
-            "| --- " * (2 + 2 * len(at)) + "|",
-            *versus_more,
-        ]
-    contrasts = [
-        (a, b, algorithm, differences(measured[b, algorithm][k], measured[a, algorithm][k], d))
-        for a, b in study.get("contrasts", [])
-        for algorithm in study.algorithms
-        for k, d in (("return", 0), ("falling_rate", 2), ("q_bias", 0))
-    ]
-    if contrasts:
-        rows = {}
-        for a, b, algorithm, cells in contrasts:
-            rows.setdefault((a, b, algorithm), []).extend(cells or ["n/a"] * len(at))
-        lines += [
-            "",
-            f"The change from one task to its pair, per algorithm: the second's mean minus "
-            f"the first's, with {WELCH}.",
-            "",
-            "| from | to | algorithm | "
-            + " | ".join(f"{k} at {f:,}" for k in ("return", "falling rate", "q_bias") for f in at)
-            + " |",
-            "| --- " * (3 + 3 * len(at)) + "|",
-            *(f"| {a} | {b} | {alg} | " + " | ".join(c) + " |" for (a, b, alg), c in rows.items()),
-        ]
-    if diagnostics:
-        lines += [
-            "",
-            f"The value-expansion targets after {tail_from:,} frames (each seed's mean over "
-            "its updates there, then mean ± 95 % t-interval over seeds): the normalised "
-            "weight w_H of each horizon H, alpha (eq. 12), the horizon-3 candidates' "
-            "variance over the horizon-0 ones', and the world model's transition MSE "
-            "(normalised units).",
-            "",
-            "| task | algorithm | seeds | w_0 | w_1 | w_2 | w_3 | alpha | V_3 / V_0 | model MSE |",
-            "| --- " * 10 + "|",
-            *diagnostics,
-        ]
-    if cost:
-        lines += [
-            "",
-            "What the finished cells cost: their own collection, update and evaluation time "
-            "(`time/*_s`, summed), in minutes per cell, and hours in all.",
-            "",
-            "| task | algorithm | cells | min | max | hours |",
-            "| --- | --- | --- | --- | --- | --- |",
-            *cost,
-        ]
+
+    def by_frame(*names: str) -> list[str]:
+        return [f"{k} at {f:,}" for k in names for f in at]
+
+    lines += section(
+        f"RAVE's mean minus each other algorithm's, with {WELCH}.",
+        ["task", "difference", *(f"at {f:,}" for f in at)],
+        versus,
+    )
+    lines += section(
+        "Value error: the critics' estimate of Q(s_t, pi(s_t)) minus the discounted "
+        "Monte-Carlo return of the evaluation episodes (`eval/q_bias`; which states count, "
+        "and how each algorithm's critics are read, is in recipes/README.md), its root mean "
+        "square and the correlation of the two; mean ± 95 % t-interval over seeds.",
+        ["task", "algorithm", "seeds", *by_frame("q_bias", "q_rmse", "q_corr")],
+        value_rows,
+    )
+    lines += section(
+        f"RAVE minus each other algorithm: falling rate and value bias, with {WELCH}.",
+        ["task", "difference", *by_frame("falling rate", "q_bias")],
+        versus_more,
+    )
+    rows = {}
+    for a, b in study.get("contrasts", []):
+        for algorithm in study.algorithms:
+            for k, d in (("return", 0), ("falling_rate", 2), ("q_bias", 0)):
+                cells = differences(measured[b, algorithm][k], measured[a, algorithm][k], d)
+                rows.setdefault((a, b, algorithm), []).extend(cells or ["n/a"] * len(at))
+    lines += section(
+        f"The change from one task to its pair, per algorithm: the second's mean minus the "
+        f"first's, with {WELCH}.",
+        ["from", "to", "algorithm", *by_frame("return", "falling rate", "q_bias")],
+        [f"| {a} | {b} | {alg} | " + " | ".join(c) + " |" for (a, b, alg), c in rows.items()],
+    )
+    lines += section(
+        f"The value-expansion targets after {tail_from:,} frames (each seed's mean over its "
+        "updates there, then mean ± 95 % t-interval over seeds): the normalised weight w_H of "
+        "each horizon H, alpha (eq. 12), the horizon-3 candidates' variance over the "
+        "horizon-0 ones', and the world model's transition MSE (normalised units).",
+        ["task", "algorithm", "seeds", "w_0", "w_1", "w_2", "w_3", "alpha", "V_3 / V_0",
+         "model MSE"],
+        diagnostics,
+    )  # fmt: skip
+    lines += section(
+        "What the finished cells cost: their own collection, update and evaluation time "
+        "(`time/*_s`, summed), in minutes per cell, and hours in all.",
+        ["task", "algorithm", "cells", "min", "max", "hours"],
+        cost,
+    )
     text = "\n".join(lines)
     (out / f"{study.name}.md").write_text(text + "\n")
     print(text)

@@ -13,6 +13,7 @@ import sys
 from pathlib import Path
 
 import pytest
+from test_recipe import TINY  # budgets where every code path runs
 
 tomllib = pytest.importorskip("tomllib")  # Python 3.11+
 
@@ -23,24 +24,6 @@ ON_DEMAND = {"envs/learn_to_run.py"}
 # needed at run time without being imported by name (gymnasium's MuJoCo envs load it)
 RUNTIME_ONLY = {"mujoco"}
 
-TINY = [
-    "collector.total_frames=200",
-    "collector.frames_per_batch=100",
-    "collector.init_random_frames=100",
-    "world_model.pretrain_frames=100",
-    "world_model.pretrain_updates=2",
-    "world_model.transition_cells=16",
-    "world_model.reward_cells=16",
-    "world_model.termination_cells=16",
-    "network.actor_cells=16",
-    "network.critic_cells=16",
-    "replay_buffer.batch_size=32",
-    "optim.utd_ratio=0.1",
-    "eval.interval=200",
-    "eval.episodes=1",
-    "checkpoint.interval=200",
-    "logger.progress_bar=false",
-]
 
 SCRIPT = """
 import json, sys, torch

@@ -383,13 +383,13 @@ def world_model_sizes(cfg: DictConfig) -> dict[str, int]:
 
 
 # Keys that shape the saved modules, buffers or algorithm: a resumed run cannot change them
-# (the world model's sizes are compared as resolved by world_model_sizes).
+# (the world model's sizes are compared as resolved by world_model_sizes, and
+# replay_buffer.size when it is set).
 FIXED_ON_RESUME = [
     "algorithm",
     "env.name",
     "env.action_noise",
     "network",
-    "replay_buffer.size",  # the buffer was allocated at this size
     "world_model.num_models",
     "ppo.rollout_frames",
     "estimator.horizon",
@@ -402,6 +402,10 @@ def check_resumable(cfg: DictConfig, saved: DictConfig) -> None:
     ]
     new, old = world_model_sizes(cfg), world_model_sizes(saved)
     changed += [(f"world_model.{k}", new[k], old[k]) for k in new]
+    # the buffer was allocated at its size when the run started; null keeps it
+    size = cfg.replay_buffer.size
+    if size is not None:
+        changed.append(("replay_buffer.size", size, saved.replay_buffer.size))
     problems = [
         f"resume={cfg.resume!r}: config key {key} is {new_value!r} but the run was started "
         f"with {old_value!r}; it cannot change on resume"
