@@ -500,8 +500,8 @@ class TestCallCounts:
             call_impl = TensorCall.__call__
             names = {}
 
-            def counted(plan, params, inputs):
-                out = call_impl(plan, params, inputs)
+            def counted(plan, params, inputs, **kwargs):
+                out = call_impl(plan, params, inputs, **kwargs)
                 name = "critic" if "state_action_value" in plan.out_keys else "actor"
                 names[name] = params.batch_size.numel() if params is not None else 1
                 rows = next(iter(inputs.values())).shape[:-1].numel()

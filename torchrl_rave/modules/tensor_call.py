@@ -332,3 +332,80 @@ class PlannedCalls:
         if key not in self._plans:
             self._plans[key] = TensorCall.plan(module, stacked=stacked)
         return self._plans[key]
+
+    def actions(
+        self,
+        actor: TensorDictModuleBase,
+        params: TensorDictBase | None,
+        inputs: Mapping[NestedKey, torch.Tensor],
+        action_key: NestedKey,
+    ) -> torch.Tensor:
+        """``actor``'s ``action_key`` ``[*B, A]`` for ``inputs`` (key -> ``[*B, F]``) under
+        ``params`` (``None``: the module's own): its planned call on the rows flattened
+        from ``*B`` when it can be planned, otherwise the module itself.
+
+        Examples:
+            >>> from torchrl.modules import MLP, Actor
+            >>> actor = Actor(MLP(in_features=3, out_features=2, num_cells=[8]))
+            >>> PlannedCalls().actions(actor, None, {"observation": torch.randn(4, 5, 3)},
+            ...                        "action").shape
+            torch.Size([4, 5, 2])
+        """
+        batch = next(iter(inputs.values())).shape[:-1]
+        call = self.get("actor", actor)
+        if call is not None:
+            flat = {k: v.reshape(-1, v.shape[-1]) for k, v in inputs.items()}
+            out = call(params, flat)[action_key]
+            return out.reshape(*batch, out.shape[-1])
+        td = TensorDict(dict(inputs), batch_size=batch)
+        if params is None:
+            return actor(td).get(action_key)
+        with params.to_module(actor, preserve_module_state=False):
+            return actor(td).get(action_key)
+
+    def values(
+        self,
+        critic: TensorDictModuleBase,
+        params: TensorDictBase | None,
+        inputs: Mapping[NestedKey, torch.Tensor],
+        value_key: NestedKey,
+        *,
+        detach: bool = False,
+        randomness: str = "error",
+    ) -> torch.Tensor:
+        """``[K, *B]`` values ``value_key`` of ``K`` critics for ``inputs`` (key ->
+        ``[*B, F]``): ``params`` stacked ``[K, ...]``, or plain (or ``None``, the module's
+        own) for ``K = 1``. ``detach=True`` uses the parameters detached (gradients still
+        reach the inputs). A planned call on the flattened rows when the critic can be
+        planned; otherwise the module, vmapped over the members with ``randomness``.
+
+        Examples:
+            >>> from torchrl.modules import MLP, ValueOperator
+            >>> critic = ValueOperator(MLP(in_features=5, out_features=1, num_cells=[8]),
+            ...                        in_keys=["observation", "action"])
+            >>> params = TensorDict.from_module(critic).data.expand(4).clone()
+            >>> x = {"observation": torch.randn(2, 6, 3), "action": torch.randn(2, 6, 2)}
+            >>> PlannedCalls().values(critic, params, x, "state_action_value").shape
+            torch.Size([4, 2, 6])
+        """
+        batch = next(iter(inputs.values())).shape[:-1]
+        stacked = params is not None and params.batch_dims >= 1
+        call = self.get("critic", critic, stacked)
+        if call is not None:
+            flat = {k: v.reshape(-1, v.shape[-1]) for k, v in inputs.items()}
+            q = call(params, flat, detach=detach)[value_key].squeeze(-1)  # [K, M] or [M]
+            q = q if stacked else q.unsqueeze(0)
+            return q.reshape(q.shape[0], *batch)
+        if detach and params is not None:
+            params = params.detach()
+
+        def member(p):
+            td = TensorDict(dict(inputs), batch_size=batch)
+            if p is None:
+                return critic(td).get(value_key)
+            with p.to_module(critic, preserve_module_state=False):
+                return critic(td).get(value_key)
+
+        if stacked:
+            return torch.vmap(member, (0,), randomness=randomness)(params).squeeze(-1)
+        return member(params).squeeze(-1).unsqueeze(0)

@@ -9,7 +9,7 @@ from tensordict import TensorDict, TensorDictBase
 from tensordict.nn import TensorDictModule, TensorDictParams, dispatch
 from tensordict.utils import NestedKey
 from torchrl.objectives import LossModule, ValueEstimators
-from torchrl.objectives.utils import _cache_values, _vmap_func, distance_loss
+from torchrl.objectives.utils import distance_loss
 from torchrl.objectives.value import TD0Estimator, TD1Estimator, TDLambdaEstimator
 
 from torchrl_rave._checks import (
@@ -153,7 +153,6 @@ class EnsembleDDPGLoss(LossModule):
         self.num_value_nets = num_value_nets
         self.loss_function = loss_function
         self.reduction = reduction or "mean"
-        self._vmap_value_network = _vmap_func(self.value_network, randomness=self.vmap_randomness)
         self.__dict__["_calls"] = PlannedCalls(fast_calls)
         self._in_keys = None
 
@@ -197,41 +196,18 @@ class EnsembleDDPGLoss(LossModule):
     def fast_calls(self, value: bool) -> None:
         self._calls.enabled = value
 
-    @property
-    @_cache_values
-    def _cached_detach_value_network_params(self):
-        return self.value_network_params.detach()
-
     def _actions(self, source, params) -> torch.Tensor:
         """The actor's action ``[*B, A]`` for the inputs ``source(key)`` under ``params``."""
         inputs = {k: source(k) for k in self.actor_network.in_keys}
-        batch = inputs[self.actor_network.in_keys[0]].shape[:-1]
-        call = self._calls.get("actor", self.actor_network)
-        if call is not None:
-            # planned calls take rows [M, F]: any batch shape is flattened and restored
-            flat = {k: v.reshape(-1, v.shape[-1]) for k, v in inputs.items()}
-            action = call(params, flat)[self.tensor_keys.action]
-            return action.reshape(*batch, action.shape[-1])
-        td = TensorDict(inputs, batch_size=batch)
-        with params.to_module(self.actor_network, preserve_module_state=False):
-            return self.actor_network(td).get(self.tensor_keys.action)
+        return self._calls.actions(self.actor_network, params, inputs, self.tensor_keys.action)
 
     def _values(self, source, action: torch.Tensor, params, detach: bool = False) -> torch.Tensor:
         """``[K, *B]`` values of the K critics (stacked ``params``, detached with
         ``detach``) at ``action``."""
         keys = self.tensor_keys
         inputs = {k: action if k == keys.action else source(k) for k in self.value_network.in_keys}
-        batch = action.shape[:-1]
-        call = self._calls.get("critic", self.value_network, stacked=True)
-        if call is not None:
-            flat = {k: v.reshape(-1, v.shape[-1]) for k, v in inputs.items()}
-            q = call(params, flat, detach=detach)[keys.state_action_value]  # [K, M, 1]
-            return q.reshape(q.shape[0], *batch)
-        if detach:
-            params = self._cached_detach_value_network_params
-        td = TensorDict(inputs, batch_size=batch)
-        td = td.expand(self.num_value_nets, *td.batch_size)
-        return self._vmap_value_network(td, params).get(keys.state_action_value).squeeze(-1)
+        return self._calls.values(self.value_network, params, inputs, keys.state_action_value,
+                                  detach=detach, randomness=self.vmap_randomness)  # fmt: skip
 
     def _value_keys(self) -> list[NestedKey]:
         keys = self.tensor_keys

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import torch
-from tensordict import TensorDict, TensorDictBase
+from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase
 
 from torchrl_rave.modules.tensor_call import PlannedCalls
@@ -97,32 +97,9 @@ class TargetNetworks:
 
     def policy(self, obs: torch.Tensor, params, keys) -> torch.Tensor:
         """Actions ``[*B, A]`` for observations ``[*B, S]``."""
-        call = self.calls.get("actor", self.actor_network)
-        if call is not None:
-            return call(params, {keys.observation: obs})[keys.action]
-        td = TensorDict({keys.observation: obs}, batch_size=obs.shape[:-1])
-        if params is None:
-            return self.actor_network(td).get(keys.action)
-        with params.to_module(self.actor_network, preserve_module_state=False):
-            return self.actor_network(td).get(keys.action)
+        return self.calls.actions(self.actor_network, params, {keys.observation: obs}, keys.action)
 
     def critic(self, obs: torch.Tensor, action: torch.Tensor, params, keys) -> torch.Tensor:
         """Critic values ``[K, *B]`` (``K = 1`` without stacked parameters)."""
-        net = self.value_network
-        stacked = params is not None and params.batch_dims >= 1
-        call = self.calls.get("critic", net, stacked)
-        if call is not None:
-            q = call(params, {keys.observation: obs, keys.action: action})[keys.value]
-            q = q.squeeze(-1)
-            return q if stacked else q.unsqueeze(0)
-
-        def one(o, a, p):
-            td = TensorDict({keys.observation: o, keys.action: a}, batch_size=o.shape[:-1])
-            if p is None:
-                return net(td).get(keys.value)
-            with p.to_module(net, preserve_module_state=False):
-                return net(td).get(keys.value)
-
-        if stacked:
-            return torch.vmap(one, (None, None, 0))(obs, action, params).squeeze(-1)
-        return one(obs, action, params).squeeze(-1).unsqueeze(0)
+        inputs = {keys.observation: obs, keys.action: action}
+        return self.calls.values(self.value_network, params, inputs, keys.value)
