@@ -125,10 +125,38 @@ class TestOtherLoggers:
         text = plot_curves.main([f"tb={runs['tensorboard']}", "--out", str(tmp_path / "c.png")])
         assert "| tb | 1 |" in text
 
+    def test_an_mlflow_run_reads_like_its_csv_twin_across_a_resume(self, tmp_path):
+        """TorchRL's MLflow logger on a store inside the run directory; a resumed run is a
+        second MLflow run there, and the reader joins them (the later value of a step wins)."""
+        runs = {b: tmp_path / b for b in ("csv", "mlflow")}
+        for backend, run in runs.items():
+            first = [
+                *TINY,
+                "algorithm=ddpg",
+                f"logger.backend={backend}",
+                "collector.total_frames=200",
+            ]
+            rave_mujoco.train(make_cfg(*first), str(run))
+            more = [*first[:-1], "collector.total_frames=400", f"resume={run}"]
+            rave_mujoco.train(make_cfg(*more), "unused")
+        assert (runs["mlflow"] / "mlflow.db").is_file() and not list(
+            runs["mlflow"].glob("*/scalars")
+        )
+        from mlflow.tracking import MlflowClient
+
+        client = MlflowClient(tracking_uri=f"sqlite:///{runs['mlflow'] / 'mlflow.db'}")
+        (exp,) = [e for e in client.search_experiments() if e.name == "ddpg"]
+        assert len(client.search_runs([exp.experiment_id])) == 2  # one per start
+        for metric in ("eval/return", "train/loss_critic", "eval/q_rmse"):
+            steps, values = read_scalar(runs["mlflow"], metric)
+            csv_steps, csv_values = read_scalar(runs["csv"], metric)
+            assert steps.tolist() == csv_steps.tolist() and steps[-1] == 400
+            np.testing.assert_array_equal(values, csv_values)
+
     def test_a_run_logged_nowhere_is_refused_with_the_reason(self, tmp_path):
         rave_mujoco.train(make_cfg(*TINY, "algorithm=ddpg", "logger.backend="), str(tmp_path))
         with pytest.raises(
-            FileNotFoundError, match=r"logged its metrics nowhere .*csv or tensorboard"
+            FileNotFoundError, match=r"logged its metrics nowhere .*csv, tensorboard or mlflow"
         ):
             read_scalar(tmp_path, "eval/return")
 

@@ -66,7 +66,8 @@ ALGORITHMS = {
     "ppo": Algorithm("ppo", None, 1),
 }
 # the package a logger backend needs
-LOGGER_PACKAGES = {"tensorboard": "tensorboard", "wandb": "wandb", "mlflow": "mlflow"}
+LOGGER_PACKAGES = {"tensorboard": ["tensorboard"], "wandb": ["wandb"],
+                   "mlflow": ["mlflow", "sqlalchemy", "alembic"]}  # fmt: skip
 _SCHEMA = dict(schema_fields())
 
 
@@ -181,11 +182,11 @@ def check_config(cfg: DictConfig) -> Algorithm:
             if key not in bad and name.endswith("_layers"):
                 rule((key,), lambda v=value: v >= 2, key, "an integer >= 2 (hidden + output)")
     backend = cfg.logger.backend
-    package = LOGGER_PACKAGES.get(backend)
-    if "logger.backend" not in bad and package and importlib.util.find_spec(package) is None:
+    missing = [p for p in LOGGER_PACKAGES.get(backend, []) if importlib.util.find_spec(p) is None]
+    if "logger.backend" not in bad and missing:
         problems.append(
-            f"config key logger.backend={backend!r} needs the {package!r} package: "
-            f"pip install {package}"
+            f"config key logger.backend={backend!r} needs the {', '.join(map(repr, missing))} "
+            "package(s): pip install 'torchrl-rave[logging]'"
         )
     if "collector.device" not in bad and c.device is not None:
         problem = _check_device(str(c.device))

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from collections.abc import Callable
+from pathlib import Path
 
 import numpy as np
 import torch
@@ -21,6 +22,8 @@ def make_logger(cfg: DictConfig, run_dir: str, state: dict | None = None) -> Log
     directory may have been moved or copied since)."""
     if not cfg.logger.backend:
         return None
+    if cfg.logger.backend == "mlflow":
+        return _mlflow_logger(cfg, Path(run_dir))
     if state and "log_dir" in state:
         state = {**state, "log_dir": str(run_dir)}
     return get_logger(
@@ -30,6 +33,26 @@ def make_logger(cfg: DictConfig, run_dir: str, state: dict | None = None) -> Log
         state_dict=state,
         wandb_kwargs={"project": cfg.logger.project, "config": OmegaConf.to_container(cfg)},
     )
+
+
+MLFLOW_DB = "mlflow.db"  # a run's MLflow store, inside its run directory
+
+
+def _mlflow_logger(cfg: DictConfig, run_dir: Path) -> Logger:
+    """TorchRL's MLflow logger on a store inside the run directory (an SQLite database:
+    MLflow no longer writes plain-file stores). Each start of a run, a resumed one too,
+    is an MLflow run of the same experiment; the run reader joins them in order."""
+    import mlflow
+    from torchrl.record.loggers.mlflow import MLFlowLogger
+
+    mlflow.end_run()  # one MLflow run per start: close any the process left open
+    store = f"sqlite:///{(run_dir / MLFLOW_DB).resolve()}"
+    logger = MLFlowLogger(
+        exp_name=cfg.logger.exp_name or cfg.algorithm,
+        tracking_uri=store,
+        artifact_location=str((run_dir / "mlartifacts").resolve()),
+    )
+    return logger
 
 
 # A state counts in the value error once the return beyond the episode's time limit, which

@@ -36,8 +36,9 @@ __all__ = [
 def read_scalar(run_dir: str | Path, metric: str) -> tuple[np.ndarray, np.ndarray]:
     """Steps (frames) and values of ``metric`` (e.g. ``"eval/return"``) in one run
     directory, as the recipe's logger wrote them: CSV (``<run>/<exp>/scalars/<metric>.csv``)
-    or TensorBoard (``<run>/<exp>/events.out.tfevents.*``, read with the ``tensorboard``
-    package). A run logged to W&B (or not at all) is refused with a message that says so.
+    TensorBoard (``<run>/<exp>/events.out.tfevents.*``, read with the ``tensorboard``
+    package) or MLflow (``<run>/mlflow.db``, read with ``mlflow``). A run logged to W&B (or
+    not at all) is refused with a message that says so.
 
     A resumed run logs again the steps between its last checkpoint and where it stopped:
     the later value of a step wins, so a resumed run reads like an uninterrupted one.
@@ -53,6 +54,8 @@ def read_scalar(run_dir: str | Path, metric: str) -> tuple[np.ndarray, np.ndarra
             rows = [(int(step), float(value)) for step, value in csv.reader(f)]
     elif any(run_dir.glob("*/events.out.tfevents.*")):
         rows = _tensorboard_rows(run_dir, metric)
+    elif (run_dir / "mlflow.db").is_file():
+        rows = _mlflow_rows(run_dir, metric)
     else:
         raise FileNotFoundError(f"{run_dir}: no {metric!r} logged{_backend_note(run_dir)}")
     latest = dict(rows)
@@ -77,18 +80,39 @@ def _tensorboard_rows(run_dir: Path, metric: str) -> list[tuple[int, float]]:
     return [(int(e.step), float(e.value)) for e in events.Scalars(metric)]
 
 
+def _mlflow_rows(run_dir: Path, metric: str) -> list[tuple[int, float]]:
+    """``(step, value)`` of a metric in a run's MLflow store (``mlflow.db``): every MLflow
+    run in it (one per start of the training run), oldest first."""
+    try:
+        from mlflow.tracking import MlflowClient
+    except ImportError as err:
+        raise ImportError(
+            f"{run_dir} was logged with logger.backend=mlflow: reading it needs the 'mlflow' "
+            "package (pip install 'torchrl-rave[logging]')"
+        ) from err
+    client = MlflowClient(tracking_uri=f"sqlite:///{(run_dir / 'mlflow.db').resolve()}")
+    ids = [e.experiment_id for e in client.search_experiments()]
+    rows = []
+    for run in client.search_runs(ids, order_by=["attributes.start_time ASC"]):
+        history = client.get_metric_history(run.info.run_id, metric)
+        rows += [(int(m.step), float(m.value)) for m in sorted(history, key=lambda m: m.timestamp)]
+    if not rows:
+        raise FileNotFoundError(f"{run_dir}: no {metric!r} in its MLflow store")
+    return rows
+
+
 def _backend_note(run_dir: Path) -> str:
     """Why a run directory has no metric files, from its saved config (plain JSON)."""
     try:
         backend = RunCheckpoint(run_dir).config()["logger"]["backend"]
     except (OSError, KeyError, TypeError, ValueError, DamagedCheckpoint):
         return " (no CSV or TensorBoard metrics here)"
-    if backend in ("csv", "tensorboard"):
+    if backend in ("csv", "tensorboard", "mlflow"):
         return f" (it logged with logger.backend={backend})"
     where = f"to {backend}" if backend else "nowhere (logger.backend='')"
     return (
         f": this run logged its metrics {where}; the analyses read runs logged with "
-        "logger.backend=csv or tensorboard"
+        "logger.backend=csv, tensorboard or mlflow"
     )
 
 

@@ -48,7 +48,7 @@ def key(default, help: str, rule: Rule | None = None, **kw):
 
 ALGORITHM_NAMES = ["ddpg", "mve", "steve", "rave", "rave_constant", "td3", "sac", "ppo"]
 COLLECTOR_BACKENDS = ["direct", "process", "ray"]
-LOGGER_BACKENDS = ["", "csv", "tensorboard", "wandb"]
+LOGGER_BACKENDS = ["", "csv", "tensorboard", "wandb", "mlflow"]
 COMPILE_MODES = [None, "default", "reduce-overhead", "max-autotune", "max-autotune-no-cudagraphs"]
 
 
@@ -192,7 +192,7 @@ class CheckpointConfig:
 
 @dataclass
 class LoggerConfig:
-    backend: str = key("csv", "csv | tensorboard | wandb | \"\" (none)",
+    backend: str = key("csv", "csv | tensorboard | wandb | mlflow | \"\" (none)",
                        one_of(LOGGER_BACKENDS))  # fmt: skip
     exp_name: str | None = key(None, "experiment name; null: the algorithm's")
     project: str = key("torchrl-rave", "wandb project")
