@@ -94,7 +94,7 @@ def run_in(fresh_venv, code: str, *args: str) -> subprocess.CompletedProcess:
 
 def test_the_wheel_builds_trains_and_loads_an_agent_outside_the_repository(fresh_venv):
     _, site, work, _ = fresh_venv
-    done = run_in(fresh_venv, SCRIPT, json.dumps(TINY))
+    done = run_in(fresh_venv, SCRIPT, json.dumps([*TINY, "collector.total_frames=200"]))
     assert done.returncode == 0, done.stderr[-3000:]
     out = json.loads(done.stdout.strip().splitlines()[-1])
     assert out["package"].startswith(str(site)) and str(ROOT) not in out["package"]
