@@ -56,7 +56,7 @@ from torchrl.modules import MLP, Actor, ValueOperator
 from torchrl.objectives import DDPGLoss, SoftUpdate, ValueEstimators
 
 from torchrl_rave.recipe.agent import make_agent
-from torchrl_rave.recipe.config import check_config
+from torchrl_rave.recipe.config import check_config, world_model_sizes
 from torchrl_rave.recipe.memory import keep_freed_memory
 from torchrl_rave.recipe.update import make_agent_step
 
@@ -477,14 +477,15 @@ def section_default(device, seconds, peak, compiled: str | None = None) -> dict:
                 / t["plain DDPG compiled"],
             }
         )
+    wm = world_model_sizes(cfg)
     sizes = {
         "batch": cfg.replay_buffer.batch_size,
         "N": cfg.world_model.num_models,
         "K (steve, rave)": 4,
         "H_max": cfg.estimator.horizon,
         "actor/critic": f"{cfg.network.num_layers} x {cfg.network.critic_cells}",
-        "transition": f"{cfg.world_model.transition_layers} x {cfg.world_model.transition_cells}",
-        "reward/termination": f"{cfg.world_model.reward_layers} x {cfg.world_model.reward_cells}",
+        "transition": f"{wm['transition_layers']} x {wm['transition_cells']}",
+        "reward/termination": f"{wm['reward_layers']} x {wm['reward_cells']}",
     }
     return {"sizes": sizes, "rows": rows, "ratios": ratios}
 
