@@ -215,6 +215,18 @@ def _empty(td):
     return td[:0]
 
 
+def _nan_observation(td):
+    td = td.clone()
+    td["observation"][2, 0] = float("nan")
+    return td
+
+
+def _inf_reward(td):
+    td = td.clone()
+    td["next", "reward"][1] = float("inf")
+    return td
+
+
 def _wide_observation(td):
     td = td.clone()
     width = td["observation"].shape[-1] + 1
@@ -232,6 +244,15 @@ _BAD_BATCHES = [
     ("rave", _empty, "EnsembleDDPGLoss got an empty batch"),
     # the estimator knows the width; its check runs before any network sees the batch
     ("rave", _wide_observation, "entry 'observation' has shape \\(6, 4\\), expected last"),
+    # without one, the loss reads the widths off the networks' first layers
+    (
+        "td0",
+        _wide_observation,
+        "the (actor|critic) takes [0-9]+ input features, but the batch "
+        "gives .*'observation' of width 4",
+    ),
+    ("td0", _nan_observation, "entry 'observation' holds NaN or infinite values"),
+    ("td0", _inf_reward, "entry \\('next', 'reward'\\) holds NaN or infinite values"),
 ]
 
 
@@ -241,7 +262,8 @@ _BAD_BATCHES = [
         (method, *case)
         for method in ("forward", "loss_value", "loss_actor")
         for case in _BAD_BATCHES
-        if not (method == "loss_actor" and case[1] is _without_action)  # reads no action
+        # the actor loss reads no action and no reward
+        if not (method == "loss_actor" and case[1] in (_without_action, _inf_reward))
     ],
 )
 def test_bad_batches_are_named_before_any_network_runs(method, estimator, damage, message):
@@ -251,6 +273,15 @@ def test_bad_batches_are_named_before_any_network_runs(method, estimator, damage
     bad = damage(batch(B=6))
     with pytest.raises(ValueError, match=message):
         getattr(loss, method)(bad)
+
+
+def test_td0_checks_can_be_turned_off_and_then_nan_flows_through():
+    """Issue 39, defect 6: the TD(0) path used to give NaN losses silently. With
+    ``check_inputs=False`` (the recipe's, whose batches are checked on collection) it does."""
+    loss = make_loss(3)
+    loss.check_inputs = False
+    out = loss(_nan_observation(batch(B=6)))
+    assert torch.isnan(out["loss_value"]) and torch.isnan(out["loss_actor"])
 
 
 @pytest.mark.parametrize("estimator", ["td0", "rave"])

@@ -65,6 +65,10 @@ class EnsembleDDPGLoss(LossModule):
             :class:`~torchrl_rave.modules.TensorCall` (direct matmuls, one batched matmul per
             layer for all critics) when their structure allows it, instead of TensorDict
             calls through ``torch.vmap``. Same numbers either way. Defaults to ``True``.
+        check_inputs (bool): with a TD estimator, refuse NaN/inf in the batch and input
+            widths the actor or critics cannot take, naming the entries (one device sync
+            per call; a value-expansion estimator checks its inputs itself, under its own
+            ``check_inputs``). Defaults to ``True``.
         reduction (str, optional): ``"mean"`` (default), ``"sum"`` or ``"none"``.
         use_prioritized_weights (str or bool): as in TorchRL's losses. Defaults to ``"auto"``.
 
@@ -138,6 +142,7 @@ class EnsembleDDPGLoss(LossModule):
         delay_actor: bool = True,
         delay_value: bool = True,
         fast_calls: bool = True,
+        check_inputs: bool = True,
         reduction: str | None = None,
         use_prioritized_weights: str | bool = "auto",
     ) -> None:
@@ -154,6 +159,7 @@ class EnsembleDDPGLoss(LossModule):
         self.loss_function = loss_function
         self.reduction = reduction or "mean"
         self.__dict__["_calls"] = PlannedCalls(fast_calls)
+        self.check_inputs = check_inputs
         self._in_keys = None
 
     # --------------------------------------------------------------------- keys
@@ -220,13 +226,38 @@ class EnsembleDDPGLoss(LossModule):
 
     def _check_batch(self, tensordict: TensorDictBase, keys) -> None:
         """Names an empty batch, or a missing entry or wrong dtype among ``keys``, before
-        any network runs; a value-expansion estimator also checks the widths."""
+        any network runs. A value-expansion estimator checks the widths (and, computing
+        its target, the values); otherwise, with ``check_inputs``, so does this."""
         check_not_empty(tensordict, type(self).__name__)
         dtype = first_param_dtype(self.actor_network_params)
+        expanding = isinstance(self.value_estimator, ValueExpansionEstimator)
+        finite = self.check_inputs and not expanding
         for key in keys:
-            get_checked(tensordict, key, check_finite=False, dtype=dtype)
-        if isinstance(self.value_estimator, ValueExpansionEstimator):
+            get_checked(tensordict, key, check_finite=finite, dtype=dtype)
+        if expanding:
             self.value_estimator.check_batch(tensordict)
+        elif self.check_inputs:
+            self._check_widths(tensordict, keys)
+
+    def _check_widths(self, tensordict: TensorDictBase, keys) -> None:
+        """The actor's inputs among ``keys`` (now and ``next``) and the critics' add up
+        to the width of each network's first linear layer."""
+        actor_in = list(self.actor_network.in_keys)
+        checks = [
+            ("actor", self.actor_network, actor_in),
+            ("actor", self.actor_network, [_under_next(k) for k in actor_in]),
+            ("critic", self.value_network, list(self.value_network.in_keys)),
+        ]
+        for name, net, inputs in checks:
+            width = _input_width(net)
+            if width is None or not all(k in keys for k in inputs):
+                continue
+            widths = {k: tensordict.get(k).shape[-1] for k in inputs}
+            if sum(widths.values()) != width:
+                given = ", ".join(f"{k!r} of width {w}" for k, w in widths.items())
+                raise ValueError(
+                    f"the {name} takes {width} input features, but the batch gives {given}"
+                )
 
     # ------------------------------------------------------------------ losses
     def loss_actor(self, tensordict: TensorDictBase) -> tuple[torch.Tensor, dict]:
@@ -329,3 +360,17 @@ class EnsembleDDPGLoss(LossModule):
             **hp,
         )
         return self
+
+
+def _under_next(key: NestedKey) -> tuple[str, ...]:
+    return ("next", *key) if isinstance(key, tuple) else ("next", key)
+
+
+def _input_width(module: torch.nn.Module) -> int | None:
+    """``in_features`` of a module's first linear layer (``None`` without one)."""
+    for layer in module.modules():
+        if isinstance(layer, torch.nn.Linear):
+            return layer.in_features
+        if isinstance(layer, torch.nn.LazyLinear):
+            return None
+    return None

@@ -295,7 +295,8 @@ def make_loss(cfg: DictConfig, env, algo: Algorithm, actor, critic, world_model)
             loss_function="l2",
         )
     else:
-        loss = EnsembleDDPGLoss(actor, critic, num_value_nets=K)
+        # batches were checked for NaN/inf on their way into the buffer
+        loss = EnsembleDDPGLoss(actor, critic, num_value_nets=K, check_inputs=False)
     if algo.estimator is None:
         loss.make_value_estimator(ValueEstimators.TD0, gamma=cfg.optim.gamma)
     else:
