@@ -294,3 +294,39 @@ def test_forward_adds_only_the_priority_to_the_callers_batch(estimator):
     make_loss(4, estimator=estimator)(data)
     assert set(data.keys(True, True)) == set(before) | {"td_error"}
     assert all(data.get(k) is v for k, v in before.items())
+
+
+def test_the_estimators_diagnostics_are_in_the_loss_output():
+    """Issue 39, defect 10: a stock script that logs the loss outputs saw nothing of RAVE."""
+    loss = make_loss(3, estimator="rave")
+    out = loss(batch(B=6))
+    diag, keys = loss.value_estimator.diagnostics, loss.value_estimator.tensor_keys
+    assert out[keys.alpha].shape == () and out[keys.horizon_weights].shape == (3,)  # H = 2
+    torch.testing.assert_close(out[keys.alpha], diag[keys.alpha].mean())
+    torch.testing.assert_close(out[keys.horizon_weights], diag[keys.horizon_weights].mean(0))
+    torch.testing.assert_close(out[keys.horizon_variance], diag[keys.horizon_variance].mean(0))
+    assert out[keys.horizon_weights].sum().item() == pytest.approx(1.0)
+    assert keys.alpha == "rave_alpha"  # never SAC's "alpha"
+    assert not make_loss(3)(batch(B=6)).keys() & {keys.alpha, "steve_alpha"}  # TD(0): none
+
+
+def test_an_untrained_world_model_is_named_once():
+    """Issue 39, defect 10: forgetting WorldModelTrainer left the estimator expanding with
+    an untrained model, silently."""
+    import warnings
+
+    from test_value_expansion import S
+
+    from torchrl_rave import WorldModelEnsemble
+
+    loss = make_loss(3)
+    fresh = WorldModelEnsemble(S, A, num_models=3, transition_cells=16, reward_cells=16,
+                               termination_cells=16)  # fmt: skip
+    est = RAVEValueEstimator.for_loss(loss, world_model=fresh, gamma=GAMMA)
+    loss.make_value_estimator(est)
+    with pytest.warns(UserWarning, match="world model that never saw data"):
+        loss(batch(B=6))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        loss(batch(B=6))  # once
+        make_loss(3, estimator="rave")(batch(B=6))  # a fitted model: no warning

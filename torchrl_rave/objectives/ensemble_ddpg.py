@@ -321,6 +321,12 @@ class EnsembleDDPGLoss(LossModule):
                 "pred_value_max": current.max(),
                 "target_value_max": target.max(),
             }
+        if isinstance(estimator, ValueExpansionEstimator):
+            # the target's diagnostics, batch means, so that a script logging the loss
+            # outputs sees them (alpha a scalar, horizon weights and variances [H+1])
+            for key, value in estimator.diagnostics.items():
+                mean = value.detach().reshape(-1, value.shape[-1]).mean(0)
+                metadata[key] = mean.squeeze(-1) if mean.numel() == 1 else mean
         return loss, metadata
 
     @dispatch

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import warnings
 from dataclasses import field, make_dataclass
 from typing import Literal
 
@@ -326,6 +327,25 @@ class ValueExpansionEstimator(ValueEstimatorBase):
         return VF.adaptive_alpha(err, self.alpha, self.alpha_error_scale)
 
     # ------------------------------------------------------------------ target
+    def _warn_if_untrained(self, wm) -> None:
+        """Warns once when the world model's normalisers never saw data: its rollouts then
+        come from a model that was never trained (``WorldModelTrainer.extend`` and ``step``
+        were not called). Checked until the first call that finds them fitted."""
+        if self.__dict__.get("_model_seen_data") or not hasattr(wm, "normalizers_fitted"):
+            return
+        if wm.normalizers_fitted:
+            self.__dict__["_model_seen_data"] = True
+        elif not self.__dict__.get("_warned_untrained"):
+            self.__dict__["_warned_untrained"] = True
+            warnings.warn(
+                f"{type(self).__name__} is expanding with a world model that never saw data "
+                "(its normalisers are empty): its targets come from an untrained model. "
+                "Call WorldModelTrainer.extend(batch) on every collected batch and "
+                "WorldModelTrainer.step(replay_buffer) before each agent update",
+                UserWarning,
+                stacklevel=3,
+            )
+
     def check_batch(self, tensordict: TensorDictBase) -> None:
         """Names a missing entry, a wrong width or dtype, or an empty batch before any
         network sees the batch (a loss calls it first); NaN is checked by the target."""
@@ -401,6 +421,8 @@ class ValueExpansionEstimator(ValueEstimatorBase):
                 f"{type(self).__name__} computes its own values; next_value is not supported"
             )
         wm = self.world_model
+        if not torch.compiler.is_compiling():
+            self._warn_if_untrained(wm)
         N, H = wm.num_models, self.horizon
         obs, action, next_obs, reward, terminated, batch_shape = self._read_batch(tensordict)
         S, A = obs.shape[-1], action.shape[-1]
