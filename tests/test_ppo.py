@@ -8,7 +8,7 @@ import signal
 import numpy as np
 import pytest
 import rave_mujoco
-from test_recipe import TINY, make_cfg, read_scalar
+from test_recipe import TINY, make_cfg, read_scalar, undocumented_metrics
 
 from torchrl_rave.recipe import loop
 from torchrl_rave.recipe.agent import make_replay_buffer
@@ -38,6 +38,7 @@ def test_ppo_trains_logs_and_anneals_its_learning_rate(tmp_path):
         assert all(np.isfinite(v) for _, v in read_scalar(tmp_path, name, "ppo")), name
     clip = [v for _, v in read_scalar(tmp_path, "train/ppo_clip_fraction", "ppo")]
     assert all(0.0 <= v <= 1.0 for v in clip)
+    assert undocumented_metrics(tmp_path / "ppo") == []
 
 
 def test_a_total_between_batches_rounds_up_and_the_schedule_stays_positive(tmp_path):

@@ -31,6 +31,7 @@ from torchrl_rave.recipe.agent import (
 from torchrl_rave.recipe.checkpoint import RunCheckpoint
 from torchrl_rave.recipe.collect import NonFiniteEnvOutput
 from torchrl_rave.recipe.config import ALGORITHMS, world_model_sizes
+from torchrl_rave.recipe.metrics import describe
 from torchrl_rave.recipe.runs import value_logged_at
 
 RECIPES = Path(__file__).resolve().parents[1] / "recipes"
@@ -66,6 +67,15 @@ def read_scalar(run_dir: Path, name: str, exp: str) -> list[tuple[int, float]]:
         return [(int(step), float(value)) for step, value in csv.reader(f)]
 
 
+def undocumented_metrics(exp_dir: Path) -> list[str]:
+    """Logged metrics that ``torchrl_rave.recipe.metrics.METRICS`` (the documented list)
+    does not describe."""
+    scalars = exp_dir / "scalars"
+    logged = [str(p.relative_to(scalars).with_suffix("")) for p in scalars.rglob("*.csv")]
+    assert "eval/return" in logged
+    return sorted(m for m in logged if describe(m) is None)
+
+
 class TestAlgorithms:
     @pytest.mark.parametrize(
         "algorithm", ["ddpg", "mve", "steve", "rave", "rave_constant", "td3", "sac"]
@@ -92,6 +102,7 @@ class TestAlgorithms:
             )
         critic = read_scalar(tmp_path, "train/loss_critic", algorithm)
         assert all(np.isfinite(v) for _, v in critic)
+        assert undocumented_metrics(tmp_path / algorithm) == []
         if algorithm in ("steve", "rave", "rave_constant"):
             w = [read_scalar(tmp_path, f"train/horizon_weight_h{h}", algorithm) for h in range(4)]
             # per-sample weights sum to one, so their batch means do too

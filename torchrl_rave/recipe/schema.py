@@ -54,38 +54,112 @@ COMPILE_MODES = [None, "default", "reduce-overhead", "max-autotune", "max-autotu
 
 @dataclass
 class EnvConfig:
-    name: str = key("InvertedPendulum-v5", "gymnasium id; `module:EnvId` imports `module` first")
+    name: str = key(
+        "InvertedPendulum-v5",
+        (
+            "gymnasium id, checked against the registry first; `module:EnvId` imports "
+            "`module` first (which registers a custom env in every worker process too)"
+        ),
+    )
     seed: int = key(0, "seed of torch, the training env and the evaluation env")
-    reward_scale: float = key(1.0, "the learner's rewards are multiplied by this", POSITIVE)
-    kwargs: dict[str, Any] | None = key(None, "keyword arguments of gymnasium.make")
+    reward_scale: float = key(
+        1.0,
+        (
+            "the learner sees rewards times this (TorchRL `RewardScaling`); logged returns "
+            "stay in env units, critic values are in scaled units"
+        ),
+        POSITIVE,
+    )
+    kwargs: dict[str, Any] | None = key(
+        None, ("keyword arguments of `gymnasium.make` (e.g. `env.kwargs={k:1.0}` for `RAVEToy-v0`)")
+    )
     action_noise: float = key(
-        0.0, "actuator noise std in half action ranges (envs.ActuatorNoise; 0: none)", NON_NEGATIVE
+        0.0,
+        (
+            "actuator noise that makes the task stochastic "
+            "(`torchrl_rave.envs.ActuatorNoise`): the simulator applies `clip(a + sigma * "
+            "eps * half_range)`, `eps ~ N(0, I)` seeded with the env, while the agent and "
+            "its replay buffer see the commanded `a`; 0 builds the env exactly as without "
+            "the key; fixed on resume"
+        ),
+        NON_NEGATIVE,
     )
 
 
 @dataclass
 class CollectorConfig:
     total_frames: int = key(15_000, "environment frames in the run", POSITIVE_INT)
-    frames_per_batch: int = key(250, "frames per collector batch", POSITIVE_INT)
-    init_random_frames: int = key(1_000, "uniform random actions first", NON_NEGATIVE_INT)
+    frames_per_batch: int = key(
+        250, "frames per collector batch (the unit of logging and checkpoints)", POSITIVE_INT
+    )
+    init_random_frames: int = key(
+        1_000, "frames collected with uniform random actions first", NON_NEGATIVE_INT
+    )
     device: str | None = key(None, "the learner's device (null: CUDA when present, else CPU)")
-    backend: str = key("direct", "direct | process | ray", one_of(COLLECTOR_BACKENDS))
-    num_workers: int = key(1, "collector workers (process, ray)", POSITIVE_INT)
-    weight_sync_every: int = key(1, "push the policy once this many updates are new", POSITIVE_INT)
+    backend: str = key(
+        "direct",
+        (
+            "`direct`: the learner process steps one env; `process`: TorchRL's "
+            "`MultiSyncCollector` with `num_workers` env processes; `ray`: TorchRL's "
+            "`RayCollector` with `num_workers` Ray actors, on this machine or a cluster. "
+            "Workers run the exploration policy on the CPU and collect in lockstep, each an"
+            " equal share of every batch"
+        ),
+        one_of(COLLECTOR_BACKENDS),
+    )
+    num_workers: int = key(
+        1,
+        ("workers of the `process` or `ray` backend; `frames_per_batch` must be a multiple"),
+        POSITIVE_INT,
+    )
+    weight_sync_every: int = key(
+        1,
+        (
+            "push the learner's policy weights to the workers at the end of a batch once "
+            "this many updates are new since the last push"
+        ),
+        POSITIVE_INT,
+    )
     timeout_s: float | None = key(
-        300.0, "a batch this late means a hung worker (null: wait)", optional(POSITIVE)
+        300.0,
+        (
+            "a batch that takes longer than this many seconds means a hung worker or env: "
+            "the run is checkpointed and stops with `CollectorTimeout`; null waits forever"
+        ),
+        optional(POSITIVE),
     )
 
 
 @dataclass
 class RayConfig:
-    address: str | None = key(None, "null: a local Ray instance | auto | a cluster address")
-    num_cpus: int | None = key(None, "CPUs of the local instance", optional(POSITIVE_INT))
-    worker_cpus: float = key(1.0, "Ray CPUs reserved per collector worker", POSITIVE)
-    worker_memory: int | None = key(None, "bytes reserved per worker", optional(POSITIVE_INT))
+    address: str | None = key(
+        None,
+        (
+            "null: start a local Ray instance (stopped at the end); `auto`: join the "
+            "cluster this machine belongs to, or the head's `host:port`. A Ray already "
+            "started in the process is used as it is"
+        ),
+    )
+    num_cpus: int | None = key(
+        None,
+        (
+            "CPUs of the local instance (null: all); `num_workers x worker_cpus` must fit, "
+            "or the run is refused before it starts"
+        ),
+        optional(POSITIVE_INT),
+    )
+    worker_cpus: float = key(
+        1.0,
+        ("Ray CPUs each collector actor reserves (fractions allowed); also its torch threads"),
+        POSITIVE,
+    )
+    worker_memory: int | None = key(
+        None, "bytes of memory each actor reserves (null: none)", optional(POSITIVE_INT)
+    )
     worker_resources: dict[str, float] | None = key(
         None,
-        "custom Ray resources per worker",
+        ("custom Ray resources each actor needs, e.g. `ray.worker_resources={actors:1}` "
+'to keep actors on nodes started with `--resources=\'{"actors": N}\'`'),
         Rule(lambda v: v is None or all(POSITIVE.test(x) for x in v.values()),
              "null or a mapping of resource name to an amount > 0"),
     )  # fmt: skip
@@ -93,7 +167,11 @@ class RayConfig:
 
 @dataclass
 class ReplayBufferConfig:
-    size: int | None = key(None, "null: min(1e6, total_frames)", optional(POSITIVE_INT))
+    size: int | None = key(
+        None,
+        "capacity; null: min(1e6, `collector.total_frames`), fixed when the run starts",
+        optional(POSITIVE_INT),
+    )
     batch_size: int = key(128, "batch of every agent and world-model update", POSITIVE_INT)
 
 
@@ -102,17 +180,46 @@ class WorldModelConfig:
     num_models: int = key(4, "ensemble size N", POSITIVE_INT)
     size: str = key(
         "cpu",
-        "named sizes of modules.world_model.WORLD_MODEL_SIZES",
+        (
+            "a named size of `torchrl_rave.modules.world_model.WORLD_MODEL_SIZES`: `cpu` (4"
+            " x 64 transition, 3 x 64 reward and termination) or `paper` (8 x 512 and 4 x "
+            "128, STEVE's released widths)"
+        ),
         one_of(list(WORLD_MODEL_SIZES)),
     )
-    transition_cells: int | None = key(None, "width; null: from size", optional(POSITIVE_INT))
-    transition_layers: int | None = key(None, "FC layers; null: from size", optional(POSITIVE_INT))
-    reward_cells: int | None = key(None, "width; null: from size", optional(POSITIVE_INT))
-    reward_layers: int | None = key(None, "FC layers; null: from size", optional(POSITIVE_INT))
-    termination_cells: int | None = key(None, "width; null: from size", optional(POSITIVE_INT))
-    termination_layers: int | None = key(None, "FC layers; null: from size", optional(POSITIVE_INT))
+    transition_cells: int | None = key(
+        None,
+        "width of the transition members; null: from `world_model.size`",
+        optional(POSITIVE_INT),
+    )
+    transition_layers: int | None = key(
+        None,
+        (
+            "FC layers of the transition members, output layer included; null: from "
+            "`world_model.size`"
+        ),
+        optional(POSITIVE_INT),
+    )
+    reward_cells: int | None = key(
+        None, "width of the reward members; null: from `world_model.size`", optional(POSITIVE_INT)
+    )
+    reward_layers: int | None = key(
+        None,
+        "FC layers of the reward members; null: from `world_model.size`",
+        optional(POSITIVE_INT),
+    )
+    termination_cells: int | None = key(
+        None,
+        "width of the termination members; null: from `world_model.size`",
+        optional(POSITIVE_INT),
+    )
+    termination_layers: int | None = key(
+        None,
+        "FC layers of the termination members; null: from `world_model.size`",
+        optional(POSITIVE_INT),
+    )
     pretrain_frames: int = key(
-        1_000, "F: agent updates start at this many frames", NON_NEGATIVE_INT
+        1_000, "F: model-based updates start once this many frames are stored", NON_NEGATIVE_INT
     )
     pretrain_updates: int = key(500, "world-model steps taken once, at F", NON_NEGATIVE_INT)
     train_every: int = key(1, "one world-model step per this many agent updates", POSITIVE_INT)
@@ -123,14 +230,20 @@ class WorldModelConfig:
 class NetworkConfig:
     actor_cells: int = key(64, "actor hidden width", POSITIVE_INT)
     critic_cells: int = key(64, "critic hidden width", POSITIVE_INT)
-    num_layers: int = key(4, "FC layers, output layer included", POSITIVE_INT)
-    num_critics: int | None = key(None, "K; null: the algorithm's", optional(POSITIVE_INT))
+    num_layers: int = key(4, "FC layers of actor and critic, output layer included", POSITIVE_INT)
+    num_critics: int | None = key(
+        None,
+        "K; null: the algorithm's own (ddpg 1; mve, steve, rave 4; td3, sac 2)",
+        optional(POSITIVE_INT),
+    )
 
 
 @dataclass
 class EstimatorConfig:
-    horizon: int = key(3, "H_max (the fixed H of mve)", NON_NEGATIVE_INT)
-    alpha: float = key(1.5, "rave: the alpha of eq. 12; rave_constant: the constant", NON_NEGATIVE)
+    horizon: int = key(3, "H_max, the longest rollout (the fixed H of `mve`)", NON_NEGATIVE_INT)
+    alpha: float = key(
+        1.5, "`rave`: the alpha of eq. 12; `rave_constant`: the constant", NON_NEGATIVE
+    )
     alpha_error_scale: float = key(1.0, "Z of eq. 12", POSITIVE)
 
 
@@ -138,7 +251,7 @@ class EstimatorConfig:
 class OptimConfig:
     lr_actor: float = key(3.0e-4, "actor learning rate", POSITIVE)
     lr_critic: float = key(3.0e-4, "critic learning rate", POSITIVE)
-    lr_alpha: float = key(3.0e-4, "SAC temperature learning rate", POSITIVE)
+    lr_alpha: float = key(3.0e-4, "`sac`: temperature learning rate", POSITIVE)
     gamma: float = key(0.99, "discount", UNIT_INTERVAL)
     tau: float = key(0.005, "soft target update rate", Rule(lambda v: 0 < v <= 1, "in (0, 1]"))
     utd_ratio: float = key(1.0, "agent updates per collected frame", POSITIVE)
@@ -146,42 +259,80 @@ class OptimConfig:
 
 @dataclass
 class CompileConfig:
-    enabled: bool = key(False, "torch.compile the world-model and agent loss forwards")
-    mode: str | None = key(None, "torch.compile mode", one_of(COMPILE_MODES))
+    enabled: bool = key(
+        False,
+        (
+            "`torch.compile` the world-model and agent loss forwards, and with them their "
+            "backward (backward calls, fused Adam and the target update stay eager); the "
+            "first updates pay the compile. Not for `ppo`"
+        ),
+    )
+    mode: str | None = key(
+        None,
+        (
+            "`torch.compile` mode: null (its default), `reduce-overhead` (CUDA graphs on a "
+            "GPU), `max-autotune`, `max-autotune-no-cudagraphs`"
+        ),
+        one_of(COMPILE_MODES),
+    )
 
 
 @dataclass
 class TD3Config:
-    policy_noise: float = key(0.2, "target policy smoothing noise", NON_NEGATIVE)
-    noise_clip: float = key(0.5, "its clip", NON_NEGATIVE)
-    policy_delay: int = key(2, "critic steps per actor step", POSITIVE_INT)
+    policy_noise: float = key(0.2, "`td3`: target policy smoothing noise", NON_NEGATIVE)
+    noise_clip: float = key(0.5, "`td3`: its clip", NON_NEGATIVE)
+    policy_delay: int = key(2, "`td3`: critic steps per actor step", POSITIVE_INT)
 
 
 @dataclass
 class PPOConfig:
-    rollout_frames: int = key(2048, "frames per batch (one PPO iteration)", POSITIVE_INT)
-    epochs: int = key(10, "passes over each batch", POSITIVE_INT)
-    minibatch_size: int = key(64, "frames per gradient step", POSITIVE_INT)
-    clip_epsilon: float = key(
-        0.2, "clip range of the ratio", Rule(lambda v: 0 < v < 1, "in (0, 1)")
+    rollout_frames: int = key(
+        2048, "`ppo`: frames collected per batch (one PPO iteration)", POSITIVE_INT
     )
-    gae_lambda: float = key(0.95, "GAE lambda", UNIT_INTERVAL)
-    entropy_coef: float = key(0.0, "entropy bonus weight", NON_NEGATIVE)
-    critic_coef: float = key(0.5, "value loss weight", NON_NEGATIVE)
-    lr: float = key(3.0e-4, "Adam learning rate (policy and value)", POSITIVE)
-    lr_schedule: str = key("linear", "linear | constant", one_of(["linear", "constant"]))
-    max_grad_norm: float | None = key(0.5, "gradient-norm clip; null: none", optional(POSITIVE))
+    epochs: int = key(10, "`ppo`: passes over each batch", POSITIVE_INT)
+    minibatch_size: int = key(
+        64, "`ppo`: frames per gradient step (at most `rollout_frames`)", POSITIVE_INT
+    )
+    clip_epsilon: float = key(
+        0.2, "`ppo`: clip range of the probability ratio", Rule(lambda v: 0 < v < 1, "in (0, 1)")
+    )
+    gae_lambda: float = key(0.95, "`ppo`: GAE lambda (gamma is `optim.gamma`)", UNIT_INTERVAL)
+    entropy_coef: float = key(
+        0.0, "`ppo`: weight of the entropy bonus (0: none, the usual MuJoCo setting)", NON_NEGATIVE
+    )
+    critic_coef: float = key(0.5, "`ppo`: weight of the value loss", NON_NEGATIVE)
+    lr: float = key(
+        3.0e-4, "`ppo`: Adam learning rate of the policy and the value network", POSITIVE
+    )
+    lr_schedule: str = key(
+        "linear",
+        "`ppo`: `linear` (annealed to 0 over `collector.total_frames`) or `constant`",
+        one_of(["linear", "constant"]),
+    )
+    max_grad_norm: float | None = key(
+        0.5, "`ppo`: global gradient-norm clip; null: none", optional(POSITIVE)
+    )
 
 
 @dataclass
 class ExplorationConfig:
-    sigma: float = key(0.1, "action noise std in half action ranges", NON_NEGATIVE)
-    epsilon: float = key(1.0, "probability of noise per step (paper 0.05)", UNIT_INTERVAL)
+    sigma: float = key(
+        0.1,
+        ("Gaussian action noise std, in units of half the action range (all but `sac` and `ppo`)"),
+        NON_NEGATIVE,
+    )
+    epsilon: float = key(
+        1.0,
+        "probability of adding the noise at a step (the paper's 0.05; 1 = always on)",
+        UNIT_INTERVAL,
+    )
 
 
 @dataclass
 class EvalConfig:
-    interval: int = key(5_000, "frames between evaluations (one more at the end)", POSITIVE_INT)
+    interval: int = key(
+        5_000, "frames between deterministic evaluations (one more at the end)", POSITIVE_INT
+    )
     episodes: int = key(5, "episodes per evaluation", POSITIVE_INT)
 
 
@@ -192,22 +343,63 @@ class CheckpointConfig:
 
 @dataclass
 class LoggerConfig:
-    backend: str = key("csv", "csv | tensorboard | wandb | mlflow | \"\" (none)",
-                       one_of(LOGGER_BACKENDS))  # fmt: skip
-    exp_name: str | None = key(None, "experiment name; null: the algorithm's")
-    project: str = key("torchrl-rave", "wandb project")
+    backend: str = key(
+        "csv",
+        (
+            "`csv`, `tensorboard`, `wandb`, `mlflow` (the last three through TorchRL's "
+            'loggers and the `logging` extra) or `""` (none). `mlflow` writes an SQLite '
+            "store, `mlflow.db`, into the run directory. The analyses read `csv`, "
+            "`tensorboard` and `mlflow` runs"
+        ),
+        one_of(LOGGER_BACKENDS),
+    )
+    exp_name: str | None = key(None, "experiment name; null: the algorithm")
+    project: str = key("torchrl-rave", "W&B project")
     progress_bar: bool = key(True, "the tqdm bar")
-    q_points: dict[str, Any] | None = key(None, "{name: [observation, action]}: log q/<name>")
+    q_points: dict[str, Any] | None = key(
+        None,
+        (
+            "`{name: [observation, action]}`: after every batch, log `q/<name>`, the "
+            "critics' mean Q at that point in reward units"
+        ),
+    )
 
 
 @dataclass
 class RecipeConfig:
     """Everything one recipe run reads; the defaults are the CPU preset."""
 
-    algorithm: str = key("rave", " | ".join(ALGORITHM_NAMES), one_of(ALGORITHM_NAMES))
-    resume: str | None = key(None, "a run directory: continue it from its last checkpoint")
-    threads: int | None = key(None, "torch threads (null: torch's default)", optional(POSITIVE_INT))
-    keep_freed_memory: bool = key(True, "glibc: reuse freed memory (same numbers)")
+    algorithm: str = key(
+        "rave",
+        "the learner: one of the algorithms listed under Algorithms",
+        one_of(ALGORITHM_NAMES),
+    )
+    resume: str | None = key(
+        None,
+        (
+            "a run directory: continue that run from its last checkpoint with its saved "
+            "config; other command-line keys apply on top (e.g. a larger "
+            "`collector.total_frames`)"
+        ),
+    )
+    threads: int | None = key(
+        None,
+        (
+            "torch threads of the learner process (null: torch's default, every core). Set "
+            "it when other processes share the cores (two runs side by side, collector "
+            "workers)"
+        ),
+        optional(POSITIVE_INT),
+    )
+    keep_freed_memory: bool = key(
+        True,
+        (
+            "glibc's malloc keeps freed blocks of up to 32 MiB for reuse instead of "
+            "returning them to the kernel (`torchrl_rave.recipe.keep_freed_memory`), so an "
+            "update does not fault its temporaries in again; the numbers are bit-for-bit "
+            "the same and the process keeps its peak heap. No effect off glibc"
+        ),
+    )
     env: EnvConfig = field(default_factory=EnvConfig)
     collector: CollectorConfig = field(default_factory=CollectorConfig)
     ray: RayConfig = field(default_factory=RayConfig)
