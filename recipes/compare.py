@@ -23,7 +23,7 @@ from torchrl_rave.recipe.runs import Cell, GridStopped, launch_grid, value_logge
 
 RECIPE = Path(__file__).resolve().parent / "rave_mujoco.py"
 
-# SPEC.md section 4: tianshou's MuJoCo benchmark (gym v3, 10 seeds, deterministic
+# tianshou's published MuJoCo benchmark (gym v3, 10 seeds, deterministic
 # evaluation), mean return at 100k / 300k / 1M environment steps. Not our runs.
 REFERENCE = {
     "Hopper": {

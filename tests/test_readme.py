@@ -39,3 +39,14 @@ def test_use_rave_in_your_own_loss(capsys):
 
 def section_code_lines() -> list[str]:
     return section_code("Use RAVE in your own TorchRL loss").splitlines()
+
+
+def test_ci_runs_exactly_the_readmes_test_command():
+    text = README.read_text()
+    start = text.index("## Two commands")
+    blocks = re.findall(r"```bash\n(.*?)\n```", text[start : text.find("\n## ", start + 1)], re.S)
+    main_job, tests = blocks[:2]
+    assert main_job == "bash scripts/setup.sh && .venv/bin/python recipes/rave_mujoco.py"
+    assert "sphinx -E -W" in tests  # the docs build, failing on any warning
+    ci = (README.parent / ".ci" / "run").read_text().strip().splitlines()
+    assert ci[-1] == tests

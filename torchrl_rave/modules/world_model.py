@@ -34,6 +34,7 @@ def network_sizes(
     return out
 
 
+#: the named world-model sizes: ``cpu`` (the default) and ``paper`` (STEVE's released widths)
 WORLD_MODEL_SIZES: dict[str, dict[str, int]] = {
     "cpu": network_sizes(transition=(64, 4), reward=(64, 3), termination=(64, 3)),
     "paper": network_sizes(transition=(512, 8), reward=(128, 4), termination=(128, 4)),

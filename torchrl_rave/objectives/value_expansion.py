@@ -91,13 +91,14 @@ class ValueExpansionEstimator(ValueEstimatorBase):
     target critics, and forms the ``N * N * K * (H_max + 1)`` candidate targets ``T_H(i,j,k)``
     (paper eq. 9). Their per-horizon mean ``E_H`` and variance ``V_H`` give the target:
 
-    ============  ==========  ==================  =========================
-    algorithm     ``rollout``  ``mix``             ``alpha``
-    ============  ==========  ==================  =========================
-    MVE (eq. 5)   ``"mean"``  ``"fixed"``         0
-    STEVE (eq. 6) ``"mean"``  ``"inverse_variance"``  0
-    RAVE (eq. 11) ``"sample"`` ``"inverse_variance"`` ``alpha`` or ``alpha(s,a)`` (eq. 12)
-    ============  ==========  ==================  =========================
+    ==============  ==============  ========================  ==========================
+    algorithm       ``rollout``     ``mix``                   ``alpha``
+    ==============  ==============  ========================  ==========================
+    MVE (eq. 5)     ``"mean"``      ``"fixed"``               0
+    STEVE (eq. 6)   ``"mean"``      ``"inverse_variance"``    0
+    RAVE (eq. 11)   ``"sample"``    ``"inverse_variance"``    ``alpha`` or ``alpha(s,a)``
+                                                              (eq. 12)
+    ==============  ==============  ========================  ==========================
 
     Network evaluations per batch of ``M`` samples: ``N M H_max`` transition rows,
     ``N^2 M H_max`` reward rows, ``K M (1 + N H_max)`` critic rows and

@@ -19,6 +19,7 @@ import re
 
 __all__ = ["METRICS", "describe"]
 
+#: metric name (with ``{H}`` or ``{name}`` where it varies) -> its meaning
 METRICS: dict[str, str] = {
     "train/episode_reward": "mean return of the training episodes that ended in the batch",
     "train/loss_critic": "critic loss (for ppo, the value loss)",

@@ -417,9 +417,9 @@ class RecipeConfig:
     logger: LoggerConfig = field(default_factory=LoggerConfig)
 
 
-# The presets: what each changes from the schema's defaults (which are the CPU preset).
-# paper: the paper's MuJoCo hyper-parameters (appendix table), sized for a GPU; the world
-# model's widths are STEVE's released configuration (modules.world_model.WORLD_MODEL_SIZES).
+#: The presets: what each changes from the schema's defaults (which are the CPU preset).
+#: ``paper``: the paper's MuJoCo hyper-parameters (appendix table), sized for a GPU; the
+#: world model's widths are STEVE's released ones (``modules.world_model.WORLD_MODEL_SIZES``).
 PRESETS: dict[str, dict] = {
     "cpu": {},
     "paper": {
