@@ -119,25 +119,23 @@ class UpdateCost(_TableDirective):
 
         path = Path(__file__).resolve().parents[2] / "benchmarks" / "update_throughput.json"
         data = json.loads(path.read_text())
-        which = self.arguments[0]
-        if which == "default":
-            rows = data["default"]["rows"]
-            base = rows["ours: ddpg"]["ms_per_update"]
-            body = [
-                [name, f"{r['ms_per_update']:.2f}", f"{r['ms_per_update'] / base:.1f}",
-                 f"{r['gflop_per_update']:.3f}", f"{100 * r['fraction_of_peak']:.1f} %"]
-                for name, r in rows.items()
-            ]  # fmt: skip
-            header = ["update", "ms", "x ours: ddpg", "GFLOP", "of matmul peak"]
+        if self.arguments[0] == "default":
+            rows, base, time_key, unit, digits = (
+                data["default"]["rows"],
+                "ours: ddpg",
+                "ms_per_update",
+                "ms",
+                2,
+            )
         else:
             rows = {k: v for k, v in data["paper"].items() if isinstance(v, dict)}
-            base = rows["ddpg"]["s_per_500_batches"]
-            body = [
-                [name, f"{r['s_per_500_batches']:.1f}", f"{r['s_per_500_batches'] / base:.1f}",
-                 f"{r['gflop_per_update']:.2f}", f"{100 * r['fraction_of_peak']:.1f} %"]
-                for name, r in rows.items()
-            ]  # fmt: skip
-            header = ["update", "s / 500 batches", "x ours: ddpg", "GFLOP", "of matmul peak"]
+            base, time_key, unit, digits = "ddpg", "s_per_500_batches", "s / 500 batches", 1
+        body = [
+            [name, f"{r[time_key]:.{digits}f}", f"{r[time_key] / rows[base][time_key]:.1f}",
+             f"{r['gflop_per_update']:.3f}", f"{100 * r['fraction_of_peak']:.1f} %"]
+            for name, r in rows.items()
+        ]  # fmt: skip
+        header = ["update", unit, "x ours: ddpg", "GFLOP", "of matmul peak"]
         lines = _list_table(header, body, "34 14 14 14 14")
         lines += ["", f"Measured on {data['device']}, torch {data['torch']}, "
                   f"{data['threads']} threads; matmul peak {data['matmul_peak_gflops']:.0f} "
