@@ -76,7 +76,7 @@ def _init_signature(app, what, name, obj, options, signature, return_annotation)
     if what == "class" and signature in ("(*args, **kwargs)", "(*args, **kwargs) -> None"):
         try:  # the annotations as types, not as the strings `from __future__` leaves
             sig = inspect.signature(obj.__init__, eval_str=True)
-        except Exception:  # noqa: BLE001: a name only importable under TYPE_CHECKING
+        except Exception:  # noqa: BLE001 (a name only importable under TYPE_CHECKING)
             sig = inspect.signature(obj.__init__)
         params = list(sig.parameters.values())[1:]  # drop self
         return str(sig.replace(parameters=params, return_annotation=inspect.Signature.empty)), None
