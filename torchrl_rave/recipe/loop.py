@@ -213,7 +213,7 @@ def _train(cfg: DictConfig, run_dir: str) -> dict[str, float]:
     elapsed = time.perf_counter() - start
     print(
         f"{cfg.algorithm} on {cfg.env.name}, seed {cfg.env.seed}: {counters['frames']} frames, "
-        f"{counters['updates']} updates, {elapsed:.0f} s this session\n"
+        f"{counters['updates']} updates, {elapsed:.0f} s of training since this start\n"
         f"  eval/return         {last_eval['eval/return']:.1f} ± "
         f"{last_eval['eval/return_std']:.1f} over {cfg.eval.episodes} episodes\n"
         f"  eval/episode_length {last_eval['eval/episode_length']:.1f}\n"
