@@ -39,7 +39,10 @@ import copy
 import json
 import os
 import platform
+import shlex
 import statistics
+import subprocess
+import sys
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -663,6 +666,20 @@ def print_report(result: dict) -> None:
             )
 
 
+def source_commit() -> str | None:
+    """The checkout's commit, with ``+`` appended when tracked files differ from it; ``None``
+    outside a git checkout."""
+    try:
+        run = lambda *a: subprocess.run(  # noqa: E731
+            ["git", "-C", str(ROOT), *a], capture_output=True, text=True, check=True
+        ).stdout.strip()
+        return run("rev-parse", "--short", "HEAD") + (
+            "+" if run("status", "--porcelain", "-uno") else ""
+        )
+    except (OSError, subprocess.CalledProcessError):
+        return None
+
+
 def main(argv=None) -> dict:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--device", default="cpu", help="cpu or cuda (default cpu)")
@@ -710,7 +727,10 @@ def main(argv=None) -> dict:
     started = time.perf_counter()
     peak = matmul_peak(device)
     name = torch.cuda.get_device_name(device) if device.type == "cuda" else platform.processor()
+    shown = sys.argv[1:] if argv is None else argv
     result = {
+        "command": shlex.join(["python", "benchmarks/update_throughput.py", *shown]),
+        "commit": source_commit(),
         "device": f"{device.type}: {name or platform.machine()}, {os.cpu_count()} cores",
         "threads": torch.get_num_threads(),
         "malloc": "keep_freed_memory()" if malloc_kept else "the C library's defaults",

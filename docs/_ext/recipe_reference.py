@@ -140,6 +140,8 @@ class UpdateCost(_TableDirective):
         lines += ["", f"Measured on {data['device']}, torch {data['torch']}, "
                   f"{data['threads']} threads; matmul peak {data['matmul_peak_gflops']:.0f} "
                   "GFLOP/s (``benchmarks/update_throughput.json``)."]  # fmt: skip
+        if data.get("commit"):
+            lines[-1] += f" Command: ``{data['command']}``, at commit ``{data['commit']}``."
         return lines
 
 
