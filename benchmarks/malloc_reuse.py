@@ -28,6 +28,8 @@ import sys
 import time
 from pathlib import Path
 
+from provenance import provenance
+
 ROOT = Path(__file__).resolve().parents[1]
 CASES = ("ours: rave", "target only: rave", "ours: ddpg", "plain PyTorch DDPG")
 
@@ -120,6 +122,7 @@ def main(argv=None) -> dict:
     }
     hashes = [run["hashes"] for kind in runs for run in runs[kind]]
     result = {
+        **provenance("malloc_reuse.py", argv),
         "device": f"cpu: {platform.processor() or platform.machine()}, {os.cpu_count()} cores",
         "malloc_setting_applied": all(run["malloc_setting_applied"] for run in runs["kept"]),
         "rounds": args.rounds,

@@ -20,6 +20,7 @@ import time
 from pathlib import Path
 
 import torch
+from provenance import provenance
 from update_throughput import _Spec, recipe_config
 
 from torchrl_rave.recipe.agent import make_agent
@@ -85,7 +86,12 @@ def main(argv: list[str] | None = None) -> dict:
             **{f"{v}_us": round(statistics.median(t), 1) for v, t in times.items()},
         }
         rows.append(row)
-    result = {"threads": torch.get_num_threads(), "torch": torch.__version__, "rows": rows}
+    result = {
+        **provenance("optimizer_step.py", argv),
+        "threads": torch.get_num_threads(),
+        "torch": torch.__version__,
+        "rows": rows,
+    }
     print(f"Adam step, {result['threads']} thread(s), microseconds per step (median):")
     print(
         f"{'parameters':18s} {'tensors':>7s} {'elements':>9s} {'fused':>8s} {'foreach':>8s} {'loop':>8s}"

@@ -18,7 +18,7 @@ Measured, in this order:
    malloc is set up as the recipe sets it (``keep_freed_memory``; ``--default-malloc``
    leaves it alone);
 3. the paper's row: seconds for 500 batches of 512 at the paper's sizes (``preset=paper``),
-   RAVE vs STEVE vs DDPG (extrapolated from ``--paper-batches`` timed batches);
+   RAVE vs STEVE vs DDPG (the median of ``--paper-batches`` interleaved rounds, extrapolated);
 4. a scaling table: one RAVE update as N, K, H_max and the batch size grow;
 5. with ``--compile [MODE]``: the recipe's ``ddpg`` and ``rave`` updates under
    ``compile.enabled=true`` (and ``compile.mode=MODE``, e.g. ``reduce-overhead`` for CUDA
@@ -39,10 +39,7 @@ import copy
 import json
 import os
 import platform
-import shlex
 import statistics
-import subprocess
-import sys
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -50,6 +47,7 @@ from pathlib import Path
 import torch
 from hydra import compose, initialize_config_dir
 from plain_rave import PlainRAVE
+from provenance import provenance
 from tensordict import TensorDict
 from torch import nn
 from torch.utils._python_dispatch import TorchDispatchMode
@@ -494,8 +492,9 @@ def section_default(device, seconds, peak, compiled: str | None = None) -> dict:
 
 
 def section_paper(device, batches_timed: int, peak: float, compiled: str | None = None) -> dict:
-    """Seconds for 500 batches of 512 at the paper's sizes (extrapolated when timing fewer);
-    with ``compiled`` (a compile mode), the recipe's updates compiled as well."""
+    """Seconds for 500 batches of 512 at the paper's sizes, extrapolated from the median of
+    ``batches_timed`` interleaved rounds; with ``compiled`` (a compile mode), the recipe's
+    updates compiled as well."""
     overrides = ["preset=paper"]
     cfg = recipe_config(overrides)
     data = batches(cfg.replay_buffer.batch_size, device, count=4)
@@ -511,9 +510,9 @@ def section_paper(device, batches_timed: int, peak: float, compiled: str | None 
         for algo in ("ddpg", "steve", "rave"):
             step = recipe_update(algo, overrides + compile_overrides(compiled), device)[0]
             workloads[f"{algo} compiled"] = step
-    flops = {}
+    flops, cases = {}, {}
     for algo, step in workloads.items():
-        case = Case(algo, step, data)
+        case = cases[algo] = Case(algo, step, data)
         if algo.endswith(" compiled"):  # the same arithmetic as its eager twin
             for _ in range(3):  # compiles, then records the CUDA graphs
                 case.step()
@@ -521,19 +520,26 @@ def section_paper(device, batches_timed: int, peak: float, compiled: str | None 
         else:
             case.count_flops()  # doubles as the warm-up
             flops[algo] = case.flops
-        sync(device)
-        t = time.perf_counter()
-        done = 0
-        # at least batches_timed batches and one second (the DDPG rows take milliseconds)
-        while done < batches_timed or time.perf_counter() - t < 1.0:
-            case.step()
-            done += 1
-            if done % 10 == 0:
-                sync(device)
-        sync(device)
-        per_batch = (time.perf_counter() - t) / done
+    # interleaved rounds, one batch of each case per round at least (and 1 s over all rounds
+    # for the DDPG rows, which take milliseconds), so that the machine's drift hits every row
+    per_round: dict[str, list[float]] = {algo: [] for algo in cases}
+    done = dict.fromkeys(cases, 0)
+    for _ in range(batches_timed):
+        for algo, case in cases.items():
+            sync(device)
+            t, n = time.perf_counter(), 0
+            while n < 1 or time.perf_counter() - t < 1.0 / batches_timed:
+                case.step()
+                n += 1
+                if n % 10 == 0:
+                    sync(device)
+            sync(device)
+            per_round[algo].append((time.perf_counter() - t) / n)
+            done[algo] += n
+    for algo, case in cases.items():
+        per_batch = statistics.median(per_round[algo])
         out[algo] = {
-            "batches_timed": done,
+            "batches_timed": done[algo],
             "s_per_batch": per_batch,
             "s_per_500_batches": 500 * per_batch,
             "gflop_per_update": case.flops / 1e9,
@@ -636,8 +642,8 @@ def print_report(result: dict) -> None:
     if "paper" in result:
         p = result["paper"]
         print(
-            f"\npaper sizes, 500 batches of 512 (extrapolated from >= {p['batches_timed']} batches"
-            f" and >= 1 s each; DDPG rows use the paper's 4 x 128 actor and critic):"
+            f"\npaper sizes, 500 batches of 512 (the median of {p['batches_timed']} interleaved rounds,"
+            f" extrapolated; DDPG rows use the paper's 4 x 128 actor and critic):"
         )
         for algo in PAPER_ROWS + tuple(f"{a} compiled" for a in ("rave", "steve", "ddpg")):
             if algo not in p:
@@ -666,20 +672,6 @@ def print_report(result: dict) -> None:
             )
 
 
-def source_commit() -> str | None:
-    """The checkout's commit, with ``+`` appended when tracked files differ from it; ``None``
-    outside a git checkout."""
-    try:
-        run = lambda *a: subprocess.run(  # noqa: E731
-            ["git", "-C", str(ROOT), *a], capture_output=True, text=True, check=True
-        ).stdout.strip()
-        return run("rev-parse", "--short", "HEAD") + (
-            "+" if run("status", "--porcelain", "-uno") else ""
-        )
-    except (OSError, subprocess.CalledProcessError):
-        return None
-
-
 def main(argv=None) -> dict:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--device", default="cpu", help="cpu or cuda (default cpu)")
@@ -690,8 +682,8 @@ def main(argv=None) -> dict:
         "--paper-batches",
         type=int,
         default=3,
-        help="batches timed at the paper's sizes (at least; and >= 1 s), extrapolated to 500 "
-        "(default 3; 0 skips)",
+        help="interleaved rounds at the paper's sizes, one batch of each case per round at least "
+        "(and 1 s per case over all rounds); the median is extrapolated to 500 (default 3; 0 skips)",
     )
     parser.add_argument("--no-scaling", action="store_true", help="skip the scaling table")
     parser.add_argument(
@@ -727,10 +719,8 @@ def main(argv=None) -> dict:
     started = time.perf_counter()
     peak = matmul_peak(device)
     name = torch.cuda.get_device_name(device) if device.type == "cuda" else platform.processor()
-    shown = sys.argv[1:] if argv is None else argv
     result = {
-        "command": shlex.join(["python", "benchmarks/update_throughput.py", *shown]),
-        "commit": source_commit(),
+        **provenance("update_throughput.py", argv),
         "device": f"{device.type}: {name or platform.machine()}, {os.cpu_count()} cores",
         "threads": torch.get_num_threads(),
         "malloc": "keep_freed_memory()" if malloc_kept else "the C library's defaults",
