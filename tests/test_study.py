@@ -316,3 +316,21 @@ def test_report_of_value_error_contrasts_and_diagnostics_by_hand(tmp_path):
     # a contrast must name two of the tasks
     with pytest.raises(ValueError, match="contrast"):
         study.load_study(write_study(tmp_path, contrasts=[["Hopper-v5", "C"]]))
+
+
+@pytest.mark.parametrize(
+    "name", sorted(p.stem for p in (Path(study.__file__).parent / "study").glob("*.yaml"))
+)
+def test_every_committed_study_makes_valid_cells(name, tmp_path):
+    from test_recipe import make_cfg
+
+    from torchrl_rave.recipe.config import check_config
+
+    loaded = study.load_study(Path(study.__file__).parent / "study" / f"{name}.yaml")
+    cells = study.missing_cells(loaded, tmp_path / "results", tmp_path / "runs")
+    expected = len(study.tasks(loaded)) * len(loaded.algorithms) * len(loaded.seeds)
+    assert len(cells) == expected
+    for cell in cells:
+        cfg = make_cfg(*cell.overrides, f"collector.total_frames={cell.frames}")
+        check_config(cfg)
+        assert cfg.collector.total_frames == loaded.frames

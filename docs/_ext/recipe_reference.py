@@ -4,7 +4,8 @@ that no key, default or metric is written down twice:
 - ``.. recipe-keys::`` every key of :mod:`torchrl_rave.recipe.schema`, its type, its
   default (the ``cpu`` preset), the ``paper`` preset's value where it differs, the rule its
   value must meet and its help text;
-- ``.. recipe-metrics::`` every metric of :data:`torchrl_rave.recipe.metrics.METRICS`.
+- ``.. recipe-metrics::`` every metric of :data:`torchrl_rave.recipe.metrics.METRICS`;
+- ``.. update-cost::`` the update-throughput figures of ``benchmarks/update_throughput.json``.
 """
 
 from __future__ import annotations
@@ -109,7 +110,8 @@ class RecipeMetrics(_TableDirective):
 class UpdateCost(_TableDirective):
     """``.. update-cost:: default`` (or ``paper``): the update-throughput table of
     ``benchmarks/update_throughput.json``, with each row's time as a multiple of the
-    recipe's ``ddpg`` update."""
+    recipe's ``ddpg`` update; ``.. update-cost:: ratios``: the run's time ratios at both
+    sizes, as the benchmark computed them."""
 
     required_arguments = 1
 
@@ -119,7 +121,20 @@ class UpdateCost(_TableDirective):
 
         path = Path(__file__).resolve().parents[2] / "benchmarks" / "update_throughput.json"
         data = json.loads(path.read_text())
-        if self.arguments[0] == "default":
+        kind = self.arguments[0]
+        if kind == "ratios":
+            paper = {k: v for k, v in data.get("paper", {}).items() if isinstance(v, float)}
+            body = [
+                [f"``{name}``", f"{v:.2f}", sizes]
+                for sizes, ratios in (("default", data["default"]["ratios"]), ("paper", paper))
+                for name, v in ratios.items()
+            ]
+            return _list_table(
+                ["ratio (of times per update, unless it says FLOPs)", "value", "sizes"],
+                body,
+                "60 20 20",
+            )
+        if kind == "default":
             rows, base, time_key, unit, digits = (
                 data["default"]["rows"],
                 "ours: ddpg",
@@ -127,9 +142,11 @@ class UpdateCost(_TableDirective):
                 "ms",
                 2,
             )
-        else:
+        elif kind == "paper":
             rows = {k: v for k, v in data["paper"].items() if isinstance(v, dict)}
             base, time_key, unit, digits = "ddpg", "s_per_500_batches", "s / 500 batches", 1
+        else:
+            raise self.error(f"update-cost takes default, paper or ratios, not {kind!r}")
         body = [
             [name, f"{r[time_key]:.{digits}f}", f"{r[time_key] / rows[base][time_key]:.1f}",
              f"{r['gflop_per_update']:.3f}", f"{100 * r['fraction_of_peak']:.1f} %"]
