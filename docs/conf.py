@@ -83,6 +83,39 @@ def _init_signature(app, what, name, obj, options, signature, return_annotation)
     return None
 
 
+def _skip_keys_alias(app, what, name, obj, skip, options):
+    """``default_keys`` is TorchRL's alias of a private dataclass; its keys are listed in
+    the class's own docstring instead (:func:`_list_tensordict_keys`)."""
+    return True if name == "default_keys" else None
+
+
+def _list_tensordict_keys(app, what, name, obj, options, lines):
+    """A class with TorchRL's ``default_keys`` gets its configurable keys, their defaults and
+    their meanings (from the keys dataclass's ``Attributes:``) at the end of its docstring."""
+    import dataclasses
+    import re
+
+    keys = getattr(obj, "default_keys", None) if what == "class" else None
+    if keys is None or not dataclasses.is_dataclass(keys):
+        return
+    meaning, current = {}, None
+    for line in (keys.__doc__ or "").split("Attributes:", 1)[-1].splitlines():
+        match = re.match(r"\s+(\w+) \(NestedKey\): (.*)", line)
+        if match:
+            current = match.group(1)
+            meaning[current] = match.group(2)
+        elif current and line.strip():
+            meaning[current] += " " + line.strip()
+    lines += ["", ".. rubric:: Tensordict keys", "",
+              "Renamed with ``set_keys(<name>=<key>)``; each default is the key read or written.", ""]  # fmt: skip
+    for field in dataclasses.fields(keys):
+        text = re.sub(r"\s*Defaults to .*$", "", meaning.get(field.name, "")).rstrip(".")
+        lines.append(f"- ``{field.name}`` = ``{field.default!r}``: {text}.")
+    lines.append("")
+
+
 def setup(app):
     app.connect("autodoc-process-signature", _init_signature)
+    app.connect("autodoc-skip-member", _skip_keys_alias)
+    app.connect("autodoc-process-docstring", _list_tensordict_keys)
     return _load_local_extension("recipe_reference").setup(app)
