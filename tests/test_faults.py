@@ -222,6 +222,25 @@ def test_a_small_filesystem_is_refused_before_training(small_filesystem):
         rave_mujoco.train(cfg, str(small_filesystem / "run"))
 
 
+@pytest.mark.parametrize("algorithm", ["rave", "sac", "ppo"])
+def test_the_space_estimate_bounds_a_real_checkpoint(tmp_path, algorithm):
+    """Defect 4 of the second round: the estimate counted bytes, not the blocks a
+    checkpoint's 250-odd small files take, so a filesystem with room for the estimate but
+    not for the checkpoint passed the check and the first save died of SIGBUS."""
+    from torchrl_rave.recipe.agent import make_agent, make_env
+    from torchrl_rave.recipe.checkpoint import _size
+    from torchrl_rave.recipe.config import replay_buffer_size, resolve_config
+
+    cfg = make_cfg(*TINY, f"algorithm={algorithm}", "env.name=Hopper-v5")
+    rave_mujoco.train(cfg, str(tmp_path))
+    real = _size(RunCheckpoint(tmp_path).latest())
+    cfg = resolve_config(cfg)
+    env = make_env(cfg, torch.device("cpu"))
+    agent = make_agent(cfg, env)
+    estimate = agent.checkpoint_bytes(replay_buffer_size(cfg), env.fake_tensordict(), 4096)
+    assert real <= estimate <= 1.6 * real, (real, estimate)
+
+
 def test_a_full_disk_between_checkpoints_is_named(small_filesystem):
     """The first checkpoint fits; filling the disk before the second is refused by name
     and the first stays loadable."""

@@ -91,25 +91,47 @@ class Agent:
         parts.update({f"optim_{name}": opt for name, opt in self.optimizers.items()})
         return {name: part for name, part in parts.items() if part is not None}
 
-    def checkpoint_bytes(self, replay_capacity: int, transition: TensorDictBase) -> int:
-        """About the size of one checkpoint: a replay buffer of ``replay_capacity`` frames
-        like ``transition`` (TorchRL allocates the whole buffer at the first extend; a
-        quarter is added for the collector's own entries) plus the agent's state, with
-        Adam's two moments for every optimised parameter."""
-        state = 0
-        for part in self.state_components().values():
-            state += sum(
-                t.numel() * t.element_size()
-                for t in part.state_dict().values()
-                if isinstance(t, torch.Tensor)
-            )
-        moments = sum(
-            2 * p.numel() * p.element_size()
-            for opt in self.optimizers.values()
-            for group in opt.param_groups
-            for p in group["params"]
-        )
-        return int(1.25 * replay_capacity * transition.bytes()) + state + moments
+    def checkpoint_bytes(
+        self, replay_capacity: int, transition: TensorDictBase, block: int = 4096
+    ) -> int:
+        """An upper bound on the disk space of one checkpoint, on a filesystem of ``block``-
+        byte blocks: every tensor is a file of its own, rounded up to whole blocks, which
+        for the many small parameters is most of the space. It counts the agent's state,
+        Adam's two moments and step for every optimised parameter (the world model's too;
+        they do not exist before the first step), and a replay buffer of
+        ``replay_capacity`` frames like ``transition`` (TorchRL allocates the whole buffer
+        at the first extend; a quarter is added for the collector's own entries), plus the
+        JSON files."""
+
+        def disk(nbytes: int) -> int:
+            return -(-int(nbytes) // block) * block
+
+        def tensors(state) -> list[torch.Tensor]:
+            if isinstance(state, torch.Tensor):
+                return [state]
+            if isinstance(state, dict):
+                state = list(state.values())
+            if isinstance(state, (list, tuple)):
+                return [t for item in state for t in tensors(item)]
+            return []
+
+        parts = self.state_components()
+        total = 0
+        for part in parts.values():  # each a directory with its metadata files
+            total += sum(disk(t.numel() * t.element_size()) for t in tensors(part.state_dict()))
+            total += 4 * block
+        optimizers = list(self.optimizers.values())
+        if self.world_model_trainer is not None:
+            optimizers.append(self.world_model_trainer.optimizer)
+        for opt in optimizers:
+            for group in opt.param_groups:
+                for p in group["params"]:
+                    total += 2 * disk(p.numel() * p.element_size()) + disk(8)
+        rows = [
+            replay_capacity * t.numel() * t.element_size() for t in tensors(transition.to_dict())
+        ]
+        total += int(1.25 * sum(disk(n) for n in rows)) + 16 * block
+        return total + (256 << 10)  # the RNG state, the config and the counters (JSON)
 
 
 def make_agent(cfg: DictConfig, env, device: torch.device | str = "cpu") -> Agent:

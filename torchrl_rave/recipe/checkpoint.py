@@ -11,6 +11,7 @@ import os
 import shutil
 import uuid
 import warnings
+from collections.abc import Callable
 from pathlib import Path
 
 from omegaconf import DictConfig, OmegaConf
@@ -137,7 +138,14 @@ def _fsync(path: Path) -> None:
 
 
 def _size(path: Path) -> int:
-    return sum(f.stat().st_size for f in path.rglob("*") if f.is_file())
+    """The disk space ``path``'s files take: whole blocks, not just their lengths."""
+    total = 0
+    for f in path.rglob("*"):
+        if f.is_file():
+            st = f.stat()
+            block = max(st.st_blksize, 4096)
+            total += max(st.st_blocks * 512, -(-st.st_size // block) * block)
+    return total
 
 
 class RunCheckpoint:
@@ -217,9 +225,10 @@ class RunCheckpoint:
                 raise DamagedCheckpoint(f"{file} does not match its checksum (corrupted)")
 
     # ------------------------------------------------------------------------ saving
-    def preflight(self, expected_bytes: int = 0) -> None:
+    def preflight(self, expected_bytes: int | Callable[[int], int] = 0) -> None:
         """Before any training: the checkpoint directory can be created and written to and
-        its filesystem has ``expected_bytes`` free; :class:`CheckpointWriteError` otherwise."""
+        its filesystem has ``expected_bytes`` free (or ``expected_bytes(block)``, given the
+        filesystem's block size); :class:`CheckpointWriteError` otherwise."""
         probe = self.root / f".write-test-{uuid.uuid4().hex}"
         try:
             self.root.mkdir(parents=True, exist_ok=True)
@@ -235,6 +244,8 @@ class RunCheckpoint:
                 f"cannot write checkpoints to {self.root} ({err.strerror or err}); "
                 "nothing was trained: make it writable or pick another run directory"
             ) from err
+        if callable(expected_bytes):
+            expected_bytes = expected_bytes(max(os.statvfs(self.root).f_frsize, 4096))
         self._check_space(int(expected_bytes), "a checkpoint of this run")
 
     def save(self, frames: int, **components) -> Path:

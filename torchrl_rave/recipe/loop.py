@@ -91,7 +91,10 @@ def _train(cfg: DictConfig, run_dir: str) -> dict[str, float]:
     # Counters and checkpoints; a resumed run restores everything it saved. Before any
     # work: the checkpoints can be written, and the disk has room for one.
     checkpoint = RunCheckpoint(run_dir)
-    checkpoint.preflight(agent.checkpoint_bytes(cfg.replay_buffer.size, env.fake_tensordict()))
+    transition = env.fake_tensordict()
+    checkpoint.preflight(
+        lambda block: agent.checkpoint_bytes(cfg.replay_buffer.size, transition, block)
+    )
     counters = {"frames": 0, "updates": 0, "update_budget": 0.0}
     counters.update(next_eval=cfg.eval.interval, next_checkpoint=cfg.checkpoint.interval)
     logger_state: dict = {}
