@@ -155,16 +155,27 @@ def make_agent(cfg: DictConfig, env, device: torch.device | str = "cpu") -> Agen
     )
 
 
-def load_agent(run_dir: str | Path, device: torch.device | str = "cpu") -> tuple[DictConfig, Agent]:
-    """The config and the agent of a run directory's latest checkpoint (nothing in it is
-    unpickled or executed)."""
+def load_agent(
+    run_dir: str | Path, device: torch.device | str = "cpu", *, trust: bool = False
+) -> tuple[DictConfig, Agent]:
+    """The config and the agent of a run directory's latest checkpoint. Nothing in it is
+    unpickled or executed, and nothing outside it is read. A saved config that would import
+    a module (``env.name="module:EnvId"``) or open a file by name (a string in
+    ``env.kwargs``) raises :class:`~torchrl_rave.recipe.trust.UntrustedRunConfig` unless
+    ``trust=True`` says that the run directory is trusted (:mod:`torchrl_rave.recipe.trust`)."""
     from torchrl_rave.recipe.checkpoint import RunCheckpoint
+    from torchrl_rave.recipe.trust import check_trusted
 
     checkpoint = RunCheckpoint(run_dir)
     path = checkpoint.latest()  # the newest undamaged one
     if path is None:
         raise FileNotFoundError(f"no checkpoint under {checkpoint.root}")
     cfg = OmegaConf.create(checkpoint.read("config", path))
+    if "ray" in cfg:
+        cfg.ray.address = None  # loading a policy connects nowhere
+    if not trust:
+        how = "Pass trust=True if you trust the run directory."
+        check_trusted(cfg, set(), f"load_agent({str(run_dir)!r})", how)
     env = make_env(cfg, torch.device(device))
     try:
         agent = make_agent(cfg, env, device)
@@ -178,16 +189,21 @@ def load_agent(run_dir: str | Path, device: torch.device | str = "cpu") -> tuple
 
 
 def load_policy(
-    run_dir: str | Path, device: torch.device | str = "cpu", *, explore: bool = False
+    run_dir: str | Path,
+    device: torch.device | str = "cpu",
+    *,
+    explore: bool = False,
+    trust: bool = False,
 ) -> TensorDictModuleBase:
     """A ready TorchRL policy from a run directory: the trained deterministic actor (or,
-    with ``explore=True``, the exploration policy the run collected with).
+    with ``explore=True``, the exploration policy the run collected with). ``trust`` as
+    for :func:`load_agent`.
 
     Examples:
         >>> policy = load_policy("outputs/2026-11-23/10-00-00")  # doctest: +SKIP
         >>> env.rollout(1000, policy)  # doctest: +SKIP
     """
-    _, agent = load_agent(run_dir, device)
+    _, agent = load_agent(run_dir, device, trust=trust)
     return agent.policy if explore else agent.actor
 
 

@@ -27,6 +27,9 @@ __all__ = [
     "FORMAT_VERSION",
     "RunCheckpoint",
     "RunInUse",
+    "UnsafeRunDirectory",
+    "UntrustedCheckpoint",
+    "check_run_directory",
     "config_for_resume",
     "exclusive_run",
     "saved_config",
@@ -48,8 +51,49 @@ class DamagedCheckpoint(RuntimeError):
     """A checkpoint's files do not match the sizes and checksums it was written with."""
 
 
+class UntrustedCheckpoint(DamagedCheckpoint):
+    """A checkpoint holds what torchrl-rave never writes: a file its checksums do not list,
+    pickled data, a symbolic link, or a path that leads out of it. Checksums guard against
+    damage, not tampering (anyone can rewrite them), so these are refused by kind."""
+
+
+class UnsafeRunDirectory(ValueError):
+    """A run directory holds a symbolic link, through which writing or reading would leave
+    the directory."""
+
+
 class RunInUse(RuntimeError):
     """Another live process is training into the same run directory."""
+
+
+# what torchrl's checkpoints and tensordict's memory maps are made of; pickles are not
+PICKLE_SUFFIXES = (".pickle", ".pkl", ".pt", ".pth", ".bin")
+
+
+def _inside(name: str) -> bool:
+    """Whether a relative path from a file (a checksum entry, a component path) stays below
+    the directory it is relative to."""
+    parts = Path(name).parts
+    return bool(parts) and not Path(name).is_absolute() and ".." not in parts
+
+
+def check_run_directory(run_dir: str | Path) -> None:
+    """Raises :class:`UnsafeRunDirectory` naming the first symbolic link under
+    ``run_dir`` (``run_dir`` itself may be one: that is the caller's choice). A run never
+    creates links, and one planted there would make its writes (the lock, the metric CSVs,
+    the checkpoints) or its reads land outside the run directory."""
+    root = Path(run_dir)
+    if not root.is_dir():
+        return
+    for dirpath, dirnames, filenames in os.walk(root):  # links are not followed
+        for name in dirnames + filenames:
+            path = Path(dirpath) / name
+            if path.is_symlink():
+                raise UnsafeRunDirectory(
+                    f"{path} is a symbolic link (to {os.readlink(path)}); a run directory "
+                    "holds none, and writing or reading through it would leave the run "
+                    "directory. Remove it, or copy the run without links"
+                )
 
 
 @contextlib.contextmanager
@@ -66,8 +110,15 @@ def exclusive_run(run_dir: str | Path):
         return
     if not Path(run_dir).is_dir():
         raise FileNotFoundError(f"{run_dir}: no such run directory")
+    check_run_directory(run_dir)
     path = Path(run_dir) / LOCK
-    with open(path, "a+") as f:
+    try:  # never through a link planted under the lock's name
+        fd = os.open(path, os.O_RDWR | os.O_CREAT | getattr(os, "O_NOFOLLOW", 0), 0o644)
+    except OSError as err:
+        if err.errno == errno.ELOOP:
+            raise UnsafeRunDirectory(f"{path} is a symbolic link; remove it") from None
+        raise
+    with os.fdopen(fd, "r+") as f:
         try:
             fcntl.flock(f, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except BlockingIOError:
@@ -174,6 +225,8 @@ class RunCheckpoint:
         self._refuse_old_format()
         if not self.root.is_dir():
             return []
+        if self.root.is_symlink():
+            raise UnsafeRunDirectory(f"{self.root} is a symbolic link; a run directory holds none")
         found = [
             p
             for p in self.root.iterdir()
@@ -199,6 +252,7 @@ class RunCheckpoint:
             ) from None
         except (ValueError, KeyError, TypeError) as err:
             raise DamagedCheckpoint(f"{path / CHECKSUMS} is unreadable ({err})") from None
+        self._refuse_untrusted(path, listed)
         if components is not None:
             try:
                 manifest = Checkpoint.manifest(path)
@@ -223,6 +277,38 @@ class RunCheckpoint:
                 raise DamagedCheckpoint(f"{file} has {actual} bytes, {size} were written")
             if _sha256(file) != sha256:
                 raise DamagedCheckpoint(f"{file} does not match its checksum (corrupted)")
+
+    def _refuse_untrusted(self, path: Path, listed: dict) -> None:
+        """What no checkpoint of ours holds: links, files outside the checksums, pickles,
+        and paths (of checksum entries or manifest components) that leave ``path``."""
+        for where in (self.root, path):
+            if where.is_symlink():
+                raise UntrustedCheckpoint(f"{where} is a symbolic link; a checkpoint holds none")
+        for name in listed:
+            if not isinstance(name, str) or not _inside(name):
+                raise UntrustedCheckpoint(f"{path / CHECKSUMS} lists {name!r}, outside {path}")
+        for dirpath, dirnames, filenames in os.walk(path):
+            for entry in dirnames + filenames:
+                file = Path(dirpath) / entry
+                rel = file.relative_to(path).as_posix()
+                if file.is_symlink():
+                    raise UntrustedCheckpoint(f"{file} is a symbolic link; a checkpoint holds none")
+                if entry in filenames and rel != CHECKSUMS and rel not in listed:
+                    raise UntrustedCheckpoint(
+                        f"{file} was not written with the checkpoint (it is not in {CHECKSUMS})"
+                    )
+                if entry.endswith(PICKLE_SUFFIXES):
+                    raise UntrustedCheckpoint(
+                        f"{file} holds pickled data, which torchrl-rave never writes and never "
+                        "loads (unpickling runs code from the file)"
+                    )
+        try:
+            records = Checkpoint.manifest(path)["components"].values()
+            outside = [r["path"] for r in records if not _inside(str(r["path"]))]
+        except Exception as err:  # noqa: BLE001 (any manifest damage is reported)
+            raise DamagedCheckpoint(f"{path}/manifest.json is unreadable ({err})") from None
+        if outside:
+            raise UntrustedCheckpoint(f"{path}/manifest.json names {outside[0]!r}, outside {path}")
 
     # ------------------------------------------------------------------------ saving
     def preflight(self, expected_bytes: int | Callable[[int], int] = 0) -> None:
@@ -357,6 +443,8 @@ class RunCheckpoint:
                 continue
             if damaged:
                 if set_aside:  # so that neither a later load nor the pruning meets them
+                    if (self.root / "damaged").is_symlink():
+                        raise UnsafeRunDirectory(f"{self.root / 'damaged'} is a symbolic link")
                     (self.root / "damaged").mkdir(exist_ok=True)
                     for bad, _ in damaged:
                         os.replace(bad, self.root / "damaged" / bad.name)
@@ -428,9 +516,21 @@ def config_for_resume(
 ) -> DictConfig:
     """The config a run was saved with, with command-line ``overrides`` applied on top. A
     ``preset=`` is refused: the run continues with the config it was saved with, and a
-    preset would silently change nothing (name the keys to change instead)."""
+    preset would silently change nothing (name the keys to change instead). A saved value
+    that would import a module, join a Ray cluster or open a file by name is refused unless
+    ``overrides`` set its key (:mod:`torchrl_rave.recipe.trust`)."""
+    from torchrl_rave.recipe.trust import check_trusted
+
     saved = saved_config(run_dir, defaults)
-    if any(o.split("=", 1)[0].lstrip("+~") == "preset" for o in overrides):
+    given = {o.split("=", 1)[0].lstrip("+~") for o in overrides}
+    check_trusted(
+        saved,
+        given,
+        f"resume={str(run_dir)!r}",
+        "Pass the key on the command line with the value to use (the saved one, if you "
+        "trust the run directory).",
+    )
+    if "preset" in given:
         raise ConfigError([
             f"resume={str(run_dir)!r}: preset= does not apply to a resumed run, which keeps "
             "the config it was saved with; set the keys to change one by one"

@@ -99,6 +99,8 @@ def make_ray_collector(cfg: DictConfig, common: dict):
     import ray.cloudpickle
     from torchrl.collectors.distributed import RayCollector
 
+    from torchrl_rave.recipe.trust import reach_ray_address
+
     # the env and policy factories live in this recipe module, which Ray workers cannot
     # import by name: pickle them by value
     ray.cloudpickle.register_pickle_by_value(sys.modules[__name__])
@@ -107,6 +109,7 @@ def make_ray_collector(cfg: DictConfig, common: dict):
     if r.address is not None and not ray.is_initialized():
         # join the cluster here (a driver connection, dropped when this process exits) so
         # that its resources are checked before any actor waits for them
+        reach_ray_address(r.address, cfg.collector.timeout_s or 30.0)
         ray.init(address=r.address)
         check_ray_fits(cfg, ray.cluster_resources(), f"the Ray cluster at {r.address}")
     remote = {"num_cpus": r.worker_cpus, "num_gpus": 0}  # actors explore on the CPU

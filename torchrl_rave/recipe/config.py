@@ -10,6 +10,7 @@ from __future__ import annotations
 import importlib
 import importlib.util
 import os
+import re
 from dataclasses import dataclass
 
 import torch
@@ -182,6 +183,12 @@ def check_config(cfg: DictConfig) -> Algorithm:
             key = f"world_model.{name}"
             if key not in bad and name.endswith("_layers"):
                 rule((key,), lambda v=value: v >= 2, key, "an integer >= 2 (hidden + output)")
+    exp_name = cfg.logger.exp_name
+    if exp_name is not None and not _plain_name(str(exp_name)):
+        problems.append(
+            _invalid("logger.exp_name", exp_name, "a plain directory name (letters, digits, "
+                     "'_', '-', '+', '.'; not starting with '.'): the run's metrics go under it")
+        )  # fmt: skip
     backend = cfg.logger.backend
     missing = [p for p in LOGGER_PACKAGES.get(backend, []) if importlib.util.find_spec(p) is None]
     if "logger.backend" not in bad and missing:
@@ -242,6 +249,12 @@ def check_command_line(overrides: list[str]) -> None:
             problems += err.problems
     if problems:
         raise ConfigError(problems)
+
+
+def _plain_name(name: str) -> bool:
+    """A name that stays one directory level below where it is joined: no separators, no
+    ``..``, nothing hidden."""
+    return re.fullmatch(r"[A-Za-z0-9_+\-][A-Za-z0-9_.+\-]*", name) is not None
 
 
 def _check_env_id(env_name: str) -> str | None:

@@ -19,17 +19,21 @@ from torchrl_rave.recipe.collect import NonFiniteEnvOutput
 def make_logger(cfg: DictConfig, run_dir: str, state: dict | None = None) -> Logger | None:
     """The run's logger (``logger.backend``) writing under ``run_dir``; ``state`` is a
     resumed run's saved logger state, whose directory gives way to ``run_dir`` (the run
-    directory may have been moved or copied since)."""
+    directory may have been moved or copied since) and whose experiment name gives way to
+    the config's (a saved name never leads the metrics elsewhere)."""
     if not cfg.logger.backend:
         return None
     if cfg.logger.backend == "mlflow":
         return _mlflow_logger(cfg, Path(run_dir))
-    if state and "log_dir" in state:
-        state = {**state, "log_dir": str(run_dir)}
+    exp_name = cfg.logger.exp_name or cfg.algorithm
+    if state:  # the run directory and the config decide where metrics go, not saved state
+        state = {**state, "exp_name": exp_name}
+        if "log_dir" in state:
+            state["log_dir"] = str(run_dir)
     return get_logger(
         cfg.logger.backend,
         logger_name=str(run_dir),
-        experiment_name=cfg.logger.exp_name or cfg.algorithm,
+        experiment_name=exp_name,
         state_dict=state,
         wandb_kwargs={"project": cfg.logger.project, "config": OmegaConf.to_container(cfg)},
     )

@@ -1,0 +1,86 @@
+"""The trust boundary of a run directory: what its saved config may decide.
+
+A run directory can come from anyone. Loading it (:func:`~torchrl_rave.recipe.load_policy`,
+:func:`~torchrl_rave.recipe.load_agent`, ``resume=``) reads tensors and JSON only, and the
+saved config decides the sizes and hyper-parameters it was trained with. It does not decide
+what this process imports, connects to, or opens by name. Those values are taken from a
+saved config only when the caller passes them again (``resume=<dir> env.name=<value>`` on
+the command line) or says it trusts the directory (``load_policy(run_dir, trust=True)``):
+
+- ``env.name`` of the form ``module:EnvId``, which imports ``module`` (gymnasium's
+  convention; from the working directory first, where a run directory may ship one);
+- ``ray.address``, which joins that Ray cluster;
+- any string in ``env.kwargs``, which the env may open as a file (MuJoCo's ``xml_file``) or
+  resolve as a name.
+"""
+
+from __future__ import annotations
+
+import socket
+
+from omegaconf import DictConfig
+
+from torchrl_rave.recipe.config import ConfigError
+
+__all__ = ["UntrustedRunConfig", "check_trusted", "outside_references", "reach_ray_address"]
+
+
+class UntrustedRunConfig(ConfigError):
+    """A saved config names a module, an address or a file, and the caller did not pass
+    that value itself nor say that it trusts the run directory."""
+
+
+def outside_references(cfg: DictConfig) -> dict[str, tuple[object, str]]:
+    """The values of ``cfg`` that would make this process import, connect to or open
+    something by name: ``{key: (value, what it would do)}``."""
+    found: dict[str, tuple[object, str]] = {}
+    name = str(cfg.env.name)
+    if ":" in name:
+        found["env.name"] = (name, f"imports the module {name.split(':', 1)[0]!r}")
+    address = cfg.get("ray", {}).get("address")
+    if address is not None:
+        found["ray.address"] = (address, "joins that Ray cluster")
+    for key, value in (cfg.env.get("kwargs") or {}).items():
+        if isinstance(value, str):
+            found[f"env.kwargs.{key}"] = (
+                value,
+                "is passed to the env, which may open it as a file",
+            )
+    return found
+
+
+def check_trusted(saved: DictConfig, given: set[str], where: str, how: str) -> None:
+    """Raises :class:`UntrustedRunConfig` for each value of ``saved`` that
+    :func:`outside_references` names and whose key (or a parent key) is not in ``given``;
+    ``how`` tells the caller how to pass one."""
+    problems = []
+    for key, (value, effect) in outside_references(saved).items():
+        parents = {".".join(key.split(".")[:n]) for n in range(1, key.count(".") + 2)}
+        if parents & given:
+            continue
+        problems.append(
+            f"{where}: its saved config sets {key}={value!r}, which {effect}; a run directory "
+            f"does not decide that. {how}"
+        )
+    if problems:
+        raise UntrustedRunConfig(problems)
+
+
+def reach_ray_address(address: str, timeout_s: float) -> None:
+    """Raises ``ConnectionError`` naming ``address`` when no Ray cluster answers there
+    within ``timeout_s`` (a TCP connection to its port). ``ray.init`` itself retries an
+    unreachable address for minutes and ignores SIGTERM meanwhile. ``auto`` (a cluster on
+    this machine, found by Ray) is not checked."""
+    if address == "auto":
+        return
+    hostport = address.split("://", 1)[-1].rstrip("/")
+    host, _, port = hostport.rpartition(":")
+    if not host or not port.isdigit():
+        raise ConnectionError(f"ray.address={address!r} is not of the form host:port or auto")
+    try:
+        socket.create_connection((host.strip("[]"), int(port)), timeout=timeout_s).close()
+    except OSError as err:
+        raise ConnectionError(
+            f"no Ray cluster answers at ray.address={address!r} ({err.strerror or err}) "
+            f"within {timeout_s:g} s; check the address, or start the cluster"
+        ) from None
