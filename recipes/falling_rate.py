@@ -33,10 +33,12 @@ from torchrl_rave.recipe.runs import parse_groups, read_scalar
 from torchrl_rave.recipe.stats import wilson_interval
 
 
-def final_falls(run_dir: Path, episodes: int, seed: int, label: str = "") -> int:
+def final_falls(
+    run_dir: Path, episodes: int, seed: int, label: str = "", trust: bool = False
+) -> int:
     """Falls in ``episodes`` deterministic episodes of the run's latest checkpoint, one
     episode at a time (the same episodes as one ``evaluate`` call) behind a progress bar."""
-    _, env, actor, _ = load_run(run_dir)
+    _, env, actor, _ = load_run(run_dir, trust)
     env.set_seed(seed)
     falls = 0
     with tqdm.tqdm(range(episodes), desc=f"{label} {run_dir.name}".strip(), unit="ep") as bar:
@@ -98,6 +100,11 @@ def main(argv: list[str] | None = None) -> str:
     )
     parser.add_argument("--out", type=Path, default=Path("falling_rate.png"))
     parser.add_argument("--title", default=None)
+    parser.add_argument(
+        "--trust",
+        action="store_true",
+        help="the run directories are trusted: their saved env.name may import a module and their env.kwargs be opened (torchrl_rave.recipe.trust)",
+    )
     args = parser.parse_args(argv)
     if args.episodes < 0:
         parser.error("--episodes must be >= 0")
@@ -114,7 +121,7 @@ def main(argv: list[str] | None = None) -> str:
         ]
         for label, runs in groups.items():
             torch.manual_seed(args.seed)
-            k = sum(final_falls(run, args.episodes, args.seed, label) for run in runs)
+            k = sum(final_falls(run, args.episodes, args.seed, label, args.trust) for run in runs)
             n = args.episodes * len(runs)
             lo, hi = wilson_interval(k, n)
             lines.append(

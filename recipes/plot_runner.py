@@ -33,8 +33,8 @@ def constant_policy(level: float):
     return lambda obs: np.full(18, level)
 
 
-def trained_policy(run_dir: str):
-    cfg, agent = load_agent(run_dir)
+def trained_policy(run_dir: str, trust: bool = False):
+    cfg, agent = load_agent(run_dir, trust=trust)
     if cfg.env.name != "LearnToRun-v0":
         raise ValueError(f"{run_dir} trained on {cfg.env.name!r}, not LearnToRun-v0")
     actor = agent.actor
@@ -100,11 +100,16 @@ def main(argv=None) -> dict:
     parser.add_argument("--every", type=int, default=10)
     parser.add_argument("--max-steps", type=int, default=1000)
     parser.add_argument("--out", default="runner.png")
+    parser.add_argument(
+        "--trust",
+        action="store_true",
+        help="the run directories are trusted: their saved env.name may import a module and their env.kwargs be opened (torchrl_rave.recipe.trust)",
+    )
     args = parser.parse_args(argv)
     if args.every < 1:
         parser.error(f"--every must be >= 1, got {args.every}")
     if args.run:
-        policy, kwargs = trained_policy(args.run)
+        policy, kwargs = trained_policy(args.run, args.trust)
         title = f"policy of {args.run}"
     else:
         if not 0.0 <= args.excitation <= 1.0:

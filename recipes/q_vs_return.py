@@ -27,21 +27,21 @@ from torchrl_rave.recipe.agent import critic_mean, load_agent, make_env
 from torchrl_rave.recipe.evaluate import discounted_returns, value_error
 
 
-def load_run(run_dir: Path):
+def load_run(run_dir: Path, trust: bool = False):
     """A run's config, an env for its task, its deterministic policy and its loss (critics),
-    from its latest checkpoint."""
-    cfg, agent = load_agent(run_dir)
+    from its latest checkpoint (``trust`` as for ``load_agent``)."""
+    cfg, agent = load_agent(run_dir, trust=trust)
     return cfg, make_env(cfg, torch.device("cpu")), agent.actor, agent.loss
 
 
 @torch.no_grad()
 def collect(
-    run_dir: Path, episodes: int, drop_tail: int, seed: int
+    run_dir: Path, episodes: int, drop_tail: int, seed: int, trust: bool = False
 ) -> tuple[np.ndarray, np.ndarray]:
     """(true discounted returns, predicted Q) at the kept states of ``episodes`` episodes."""
     from torchrl.envs.utils import ExplorationType, set_exploration_type
 
-    cfg, env, actor, loss = load_run(run_dir)
+    cfg, env, actor, loss = load_run(run_dir, trust)
     env.set_seed(seed)
     true, pred = [], []
     with set_exploration_type(ExplorationType.DETERMINISTIC):
@@ -124,6 +124,11 @@ def main(argv: list[str] | None = None) -> str:
     parser.add_argument("--seed", type=int, default=12345, help="evaluation env seed")
     parser.add_argument("--out", type=Path, default=Path("q_vs_return.png"))
     parser.add_argument("--title", default=None)
+    parser.add_argument(
+        "--trust",
+        action="store_true",
+        help="the run directories are trusted: their saved env.name may import a module and their env.kwargs be opened (torchrl_rave.recipe.trust)",
+    )
     args = parser.parse_args(argv)
     if args.episodes < 1:
         parser.error("--episodes must be >= 1")
@@ -132,7 +137,7 @@ def main(argv: list[str] | None = None) -> str:
         if "=" not in spec:
             parser.error(f"{spec!r}: expected LABEL=RUN_DIR")
         label, run = spec.split("=", 1)
-        true, pred = collect(Path(run), args.episodes, args.drop_tail, args.seed)
+        true, pred = collect(Path(run), args.episodes, args.drop_tail, args.seed, args.trust)
         if len(true) < 2:
             raise ValueError(f"{label}: fewer than 2 states left; lower --drop-tail")
         results[label] = (true, pred)

@@ -235,8 +235,25 @@ def _wide_observation(td):
     return td
 
 
+def _int64_reward(td):
+    td = td.clone()
+    td["next", "reward"] = td["next", "reward"].round().long()
+    return td
+
+
+def _int64_action(td):
+    td = td.clone()
+    td["action"] = td["action"].round().long()
+    return td
+
+
 _BAD_BATCHES = [
     ("td0", _without_action, "no entry 'action'"),
+    # issue 39, defect 9: integer rewards and actions were cast silently
+    ("td0", _int64_reward, "entry \\('next', 'reward'\\) is torch.int64, expected a floating"),
+    ("rave", _int64_reward, "entry \\('next', 'reward'\\) is torch.int64, expected a floating"),
+    ("td0", _int64_action, "entry 'action' is torch.int64, expected a floating"),
+    ("rave", _int64_action, "entry 'action' is torch.int64, expected a floating"),
     ("rave", _without_action, "no entry 'action'"),
     ("td0", _float64, "entry 'observation' is torch.float64 but the model's parameters"),
     ("rave", _float64, "entry 'observation' is torch.float64 but the model's parameters"),
@@ -263,7 +280,10 @@ _BAD_BATCHES = [
         for method in ("forward", "loss_value", "loss_actor")
         for case in _BAD_BATCHES
         # the actor loss reads no action and no reward
-        if not (method == "loss_actor" and case[1] in (_without_action, _inf_reward))
+        if not (
+            method == "loss_actor"
+            and case[1] in (_without_action, _inf_reward, _int64_reward, _int64_action)
+        )
     ],
 )
 def test_bad_batches_are_named_before_any_network_runs(method, estimator, damage, message):

@@ -225,6 +225,25 @@ def _nan_pendulum(after: int = 150):
 gym.register("NaNInvertedPendulum-v0", entry_point=_nan_pendulum, max_episode_steps=1000)
 
 
+class _HugeAfter(_NaNAfter):
+    """Observations scaled by 1e20 from the ``after``-th step on: finite, but beyond what
+    float32 statistics can hold."""
+
+    def step(self, action):
+        obs, reward, terminated, truncated, info = self.env.step(action)
+        self.steps += 1
+        if self.steps >= self.after:
+            obs = obs * 1e20 + 1e20
+        return obs, reward, terminated, truncated, info
+
+
+gym.register(
+    "HugeInvertedPendulum-v0",
+    entry_point=lambda after=150: _HugeAfter(gym.make("InvertedPendulum-v5"), after),
+    max_episode_steps=1000,
+)
+
+
 class TestCheckpoints:
     def test_nan_observation_stops_with_checkpoint(self, tmp_path):
         # the policy is random for the first frames, so make episodes long with many
@@ -238,6 +257,18 @@ class TestCheckpoints:
         checkpoint.load(replay_buffer=rb, restore_rng=False)
         assert len(rb) == 100
         assert torch.isfinite(rb[:100]["next", "observation"]).all()
+
+    def test_huge_observations_stop_with_a_checkpoint_before_reaching_the_model(self, tmp_path):
+        """Issue 39, defect 9: observations of 1e20 made the world model's normalisers
+        non-finite and its parameters NaN after one step, with no error."""
+        cfg = make_cfg(*TINY, "env.name=HugeInvertedPendulum-v0")
+        with pytest.raises(NonFiniteEnvOutput, match=r"values up to [0-9.]+e\+20 \(beyond "
+                           r"±1e\+18\) in .*observation.*frames 100-200"):  # fmt: skip
+            rave_mujoco.train(cfg, str(tmp_path))
+        checkpoint = RunCheckpoint(tmp_path)
+        assert checkpoint.read("counters")["frames"] == 100
+        state = checkpoint.read("world_model")
+        assert all(torch.isfinite(v).all() for v in state.values() if torch.is_tensor(v))
 
     def test_nan_in_the_first_batch_is_reported_not_a_storage_error(self, tmp_path):
         """Nothing is stored yet when the first batch is bad: the run still says what went

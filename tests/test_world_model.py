@@ -113,6 +113,20 @@ class TestRunningNormalizer:
         assert norm.std.item() == pytest.approx(1e-3)
         assert norm.normalize(torch.tensor([[4.0]])).item() == 0.0
 
+    def test_inputs_beyond_float32_statistics_are_refused_and_change_nothing(self):
+        """Issue 39, defect 9: inputs of 1e20 gave an infinite float32 variance, and the
+        world model's parameters were NaN after one step, with no error."""
+        norm = RunningNormalizer(2)
+        norm.update(torch.tensor([[1.0, 2.0], [3.0, 4.0]]))
+        before = {k: v.clone() for k, v in norm.state_dict().items()}
+        huge = torch.tensor([[1e20, 0.0], [-1e20, 1.0]])
+        with pytest.raises(ValueError, match="inputs up to 1e\\+20 .* beyond torch.float32"):
+            norm.update(huge)
+        for key, value in norm.state_dict().items():
+            torch.testing.assert_close(value, before[key])
+        norm.update(torch.tensor([[1e18, 0.0], [-1e18, 1.0]]))  # still representable
+        assert torch.isfinite(norm.std).all()
+
 
 class TestWorldModelEnsemble:
     @pytest.mark.parametrize("batch", [(5,), (2, 3)])

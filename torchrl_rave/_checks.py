@@ -19,13 +19,21 @@ def get_checked(
     *,
     check_finite: bool = True,
     dtype: torch.dtype | None = None,
+    floating: bool = False,
 ) -> torch.Tensor:
     """Reads ``key`` from ``tensordict``; raises ``ValueError`` naming the key when it is
-    missing, when its last dimension is not ``size``, when it is a floating-point tensor
-    of another ``dtype`` than the model's, or when it holds NaN/inf."""
+    missing, when its last dimension is not ``size``, when ``floating`` and it is not a
+    floating-point tensor (an integer reward or action would be silently cast), when it is
+    a floating-point tensor of another ``dtype`` than the model's, or when it holds NaN/inf."""
     value = tensordict.get(key, None)
     if value is None:
         raise ValueError(f"the input tensordict has no entry {key!r}")
+    if floating and not value.is_floating_point():
+        raise ValueError(
+            f"entry {key!r} is {value.dtype}, expected a floating-point tensor"
+            + (f" ({dtype}, as the model's parameters)" if dtype is not None else "")
+            + ": cast it (e.g. with torchrl's DoubleToFloat or a dtype cast) before the loss"
+        )
     if size is not None and value.shape[-1] != size:
         raise ValueError(
             f"entry {key!r} has shape {tuple(value.shape)}, expected last dimension {size}"

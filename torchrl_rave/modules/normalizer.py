@@ -38,7 +38,9 @@ class RunningNormalizer(nn.Module):
 
     @torch.no_grad()
     def update(self, x: torch.Tensor) -> None:
-        """Merges the rows of ``x`` (shape ``[*B, size]``) into the statistics."""
+        """Merges the rows of ``x`` (shape ``[*B, size]``) into the statistics; raises
+        ``ValueError``, leaving them unchanged, when they would not fit the buffers' dtype
+        (float32 variances end near 3.4e38, so at inputs near 1.8e19)."""
         if x.shape[-1] != self.size:
             raise ValueError(
                 f"normaliser of size {self.size} got a tensor of shape {tuple(x.shape)}"
@@ -57,6 +59,14 @@ class RunningNormalizer(nn.Module):
             new_mean = self.mean + delta * n / total
             m2 = self.var * self.count + batch_var * n + delta.pow(2) * self.count * n / total
             new_var = m2 / total
+        fits = torch.isfinite(new_mean.to(self.mean.dtype)).all()
+        fits &= torch.isfinite(new_var.to(self.var.dtype)).all()
+        if not bool(fits):  # the statistics are left as they were
+            raise ValueError(
+                f"RunningNormalizer: inputs up to {x.abs().max().item():.3g} in magnitude (or "
+                f"NaN/inf) give statistics beyond {self.var.dtype}'s range; scale them down "
+                "(e.g. a reward scale or an observation transform) before they reach the model"
+            )
         self.mean.copy_(new_mean)
         self.var.copy_(new_var)
         self.count += n

@@ -232,8 +232,10 @@ class EnsembleDDPGLoss(LossModule):
         dtype = first_param_dtype(self.actor_network_params)
         expanding = isinstance(self.value_estimator, ValueExpansionEstimator)
         finite = self.check_inputs and not expanding
-        for key in keys:
-            get_checked(tensordict, key, check_finite=finite, dtype=dtype)
+        flags = {("next", self.tensor_keys.done), ("next", self.tensor_keys.terminated)}
+        for key in keys:  # observations, actions and rewards: never integers
+            floating = key not in flags
+            get_checked(tensordict, key, check_finite=finite, dtype=dtype, floating=floating)
         if expanding:
             self.value_estimator.check_batch(tensordict)
         elif self.check_inputs:

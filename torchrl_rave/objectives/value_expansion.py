@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 import warnings
 from dataclasses import field, make_dataclass
 from typing import Literal
@@ -363,12 +364,11 @@ class ValueExpansionEstimator(ValueEstimatorBase):
         dtype = first_param_dtype(wm) if check else None
         if check:
             check_not_empty(tensordict, type(self).__name__)
-        obs = get_checked(tensordict, k.observation, S, check_finite=finite, dtype=dtype)
-        action = get_checked(tensordict, k.action, A, check_finite=finite, dtype=dtype)
-        next_obs = get_checked(
-            tensordict, ("next", k.observation), S, check_finite=finite, dtype=dtype
-        )
-        reward = get_checked(tensordict, ("next", k.reward), check_finite=finite, dtype=dtype)
+        checked = functools.partial(get_checked, check_finite=finite, dtype=dtype, floating=True)
+        obs = checked(tensordict, k.observation, S)
+        action = checked(tensordict, k.action, A)
+        next_obs = checked(tensordict, ("next", k.observation), S)
+        reward = checked(tensordict, ("next", k.reward))
         terminated = tensordict.get(("next", k.terminated), None)
         if terminated is None:
             terminated = get_checked(tensordict, ("next", k.done), check_finite=False)

@@ -152,14 +152,27 @@ class CollectorTimeout(CollectorFailure):
 
 
 class NonFiniteEnvOutput(RuntimeError):
-    """The environment produced NaN or infinite observations or rewards."""
+    """The environment produced NaN, infinite or unusably large observations or rewards."""
+
+
+# Beyond this magnitude an observation or reward cannot be normalised in float32 (its
+# square, the variance, would overflow), so no learner here could use it.
+MAX_MAGNITUDE = 1e18
 
 
 def check_finite(data: TensorDictBase) -> str | None:
-    """Names the first collected entry holding NaN/inf, or ``None`` when all are finite."""
-    for key in ("observation", ("next", "observation"), ("next", "reward")):
-        if not bool(torch.isfinite(data[key]).all()):
-            return str(key)
+    """What is wrong with the first collected entry holding NaN/inf, values beyond
+    ``MAX_MAGNITUDE``, or values that are not floating point, with its name; ``None`` when
+    all are usable."""
+    for key in ("observation", ("next", "observation"), ("next", "reward"), "action"):
+        value = data[key]
+        if not value.is_floating_point():
+            return f"{value.dtype} values (not floating point) in {key!r}"
+        if not bool(torch.isfinite(value).all()):
+            return f"NaN/inf in {key!r}"
+        if key != "action" and bool((value.abs() > MAX_MAGNITUDE).any()):
+            top = value.abs().max().item()
+            return f"values up to {top:.3g} (beyond ±{MAX_MAGNITUDE:g}) in {key!r}"
     return None
 
 

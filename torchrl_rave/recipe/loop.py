@@ -138,7 +138,7 @@ def _train(cfg: DictConfig, run_dir: str) -> dict[str, float]:
                 if bad is not None:
                     where = stop_run(collector, save_checkpoint)
                     raise NonFiniteEnvOutput(
-                        f"{cfg.env.name} produced NaN/inf in {bad!r} within frames "
+                        f"{cfg.env.name} produced {bad} within frames "
                         f"{counters['frames']}-{counters['frames'] + data.numel()}; the run "
                         f"stopped before that batch reached the replay buffer; {where} "
                         f"(frame {counters['frames']}): fix the env and rerun with "
