@@ -79,20 +79,25 @@ def _inside(name: str) -> bool:
 
 def check_run_directory(run_dir: str | Path) -> None:
     """Raises :class:`UnsafeRunDirectory` naming the first symbolic link under
-    ``run_dir`` (``run_dir`` itself may be one: that is the caller's choice). A run never
-    creates links, and one planted there would make its writes (the lock, the metric CSVs,
-    the checkpoints) or its reads land outside the run directory."""
+    ``run_dir`` that leads outside it (``run_dir`` itself may be one: that is the caller's
+    choice). One planted there would make the run's writes (the metric CSVs, the
+    checkpoints) or reads land outside the run directory. Links that stay inside are left
+    alone, and so is ``wandb/`` (wandb writes it, linking into its own cache, and the run
+    neither writes nor reads it); checkpoints hold no links at all."""
     root = Path(run_dir)
     if not root.is_dir():
         return
+    inside = root.resolve()
     for dirpath, dirnames, filenames in os.walk(root):  # links are not followed
+        if Path(dirpath) == root and "wandb" in dirnames:
+            dirnames.remove("wandb")  # wandb's own files, which link into its cache
         for name in dirnames + filenames:
             path = Path(dirpath) / name
-            if path.is_symlink():
+            if path.is_symlink() and not path.resolve().is_relative_to(inside):
                 raise UnsafeRunDirectory(
-                    f"{path} is a symbolic link (to {os.readlink(path)}); a run directory "
-                    "holds none, and writing or reading through it would leave the run "
-                    "directory. Remove it, or copy the run without links"
+                    f"{path} is a symbolic link to {os.readlink(path)}, outside the run "
+                    "directory; writing or reading through it would leave the run directory. "
+                    "Remove it, or copy the run without links"
                 )
 
 
