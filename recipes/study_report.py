@@ -19,7 +19,7 @@ from plot_curves import seeds, study_figures
 
 from torchrl_rave.recipe.runs import read_scalar, train_seconds
 from torchrl_rave.recipe.stats import difference95, interval95, wilson_interval
-from torchrl_rave.recipe.studies import load_study, result_dir, tasks
+from torchrl_rave.recipe.studies import load_study, report_frames, result_dir, tasks
 
 RAVE_DIAGNOSTICS = ["rave_alpha", "wm_transition_mse", *(f"horizon_weight_h{h}" for h in range(4))]
 # metrics under an earlier name in cells that ran before the rename
@@ -114,7 +114,7 @@ def report(args) -> str:
     study = load_study(args.config)
     out = args.figures
     out.mkdir(parents=True, exist_ok=True)
-    at = [study.frames // 2, study.frames]
+    at = report_frames(study)
     # the published reference is at 100k frames: beside a shorter study it would mislead
     with_ref = study.frames >= 100_000
     # one evaluation is 10 episodes of one policy snapshot; the evaluations of the last
@@ -157,6 +157,12 @@ def report(args) -> str:
                 lines.append(f"| {task} | {algorithm} | 0 |" + " n/a |" * (len(at) + 2) + ref)
                 continue
             steps, values = series(runs, "eval/return")
+            if missing := [f for f in at if f not in steps]:
+                raise ValueError(
+                    f"{study.name}: the {task} {algorithm} cells have no evaluation at "
+                    f"{missing} frames (they evaluated at {steps[:3].tolist()}, ...); set "
+                    "report_at in the study file to frames they evaluated at"
+                )
             last = tail_means(runs, "eval/return", tail_from)
             fall_steps, falls = series(runs, "eval/falling_rate")
             falling[algorithm] = (fall_steps, falls.mean(0), falls.min(0), falls.max(0))

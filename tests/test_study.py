@@ -318,6 +318,28 @@ def test_report_of_value_error_contrasts_and_diagnostics_by_hand(tmp_path):
         study.load_study(write_study(tmp_path, contrasts=[["Hopper-v5", "C"]]))
 
 
+def test_report_at_chooses_the_table_frames_and_must_be_evaluation_frames(tmp_path):
+    results, figures = tmp_path / "results", tmp_path / "figures"
+    for seed, (a, b, c) in enumerate([(1, 2, 3), (3, 4, 5)]):
+        write_cell(results, "ddpg", seed, {"eval/return": [(50, a), (100, b), (200, c)],
+                                           "eval/falling_rate": [(50, 1), (100, 1), (200, 0)]})  # fmt: skip
+    config = write_study(tmp_path, algorithms=["ddpg"], report_at=[50, 200])
+    study.main(["report", "--config", str(config), "--results", str(results),
+                "--figures", str(figures)])  # fmt: skip
+    table = (figures / "tiny.md").read_text()
+    # at 50: [1, 3], mean 2, half 12.706 * 1.414 / 1.414; at 200: [3, 5]; after 150: [3, 5]
+    assert "| return at 50 | return at 200 | mean return after 150 |" in table
+    assert "| Hopper-v5 | ddpg | 2 | 2 ± 13 | 4 ± 13 | 4 ± 13 | 0.00 [0.00, 0.16] |" in table
+    # 75 is not a frame the cells evaluated at: an error that says so, not a column of n/a
+    config = write_study(tmp_path, algorithms=["ddpg"], report_at=[75, 200])
+    with pytest.raises(ValueError, match=r"no evaluation at \[75\] frames.*report_at"):
+        study.main(["report", "--config", str(config), "--results", str(results),
+                    "--figures", str(figures)])  # fmt: skip
+    for bad in ([200, 100], [0, 100], [100, 300], [100, 100]):
+        with pytest.raises(ValueError, match="report_at must be increasing"):
+            study.load_study(write_study(tmp_path, report_at=bad))
+
+
 @pytest.mark.parametrize(
     "name", sorted(p.stem for p in (Path(study.__file__).parent / "study").glob("*.yaml"))
 )

@@ -9,7 +9,7 @@ from pathlib import Path
 
 from omegaconf import DictConfig, OmegaConf
 
-__all__ = ["Task", "load_study", "result_dir", "tasks"]
+__all__ = ["Task", "load_study", "report_frames", "result_dir", "tasks"]
 
 
 @dataclass(frozen=True)
@@ -38,8 +38,10 @@ def tasks(study: DictConfig) -> list[Task]:
 
 
 def load_study(path: Path) -> DictConfig:
-    """A study file, checked: its keys, its task entries and their distinct labels, and its
-    ``contrasts`` (optional pairs of task labels the report compares)."""
+    """A study file, checked: its keys, its task entries and their distinct labels, its
+    ``contrasts`` (optional pairs of task labels the report compares) and its ``report_at``
+    (optional frames at which the report's tables read the metrics; half and all of the
+    budget by default)."""
     study = OmegaConf.load(path)
     for key in ("name", "tasks", "algorithms", "seeds", "frames"):
         if key not in study:
@@ -53,7 +55,18 @@ def load_study(path: Path) -> DictConfig:
     for pair in study.get("contrasts", []):
         if len(pair) != 2 or not set(pair) <= set(labels):
             raise ValueError(f"{path}: a contrast is two of the task labels {labels}, got {pair}")
+    at = list(study.get("report_at", []))
+    if not all(isinstance(f, int) and 0 < f <= study.frames for f in at) or at != sorted(set(at)):
+        raise ValueError(
+            f"{path}: report_at must be increasing frame counts in (0, {study.frames}], got {at}"
+        )
     return study
+
+
+def report_frames(study: DictConfig) -> list[int]:
+    """The frames at which a study's tables read the metrics: its ``report_at``, or half
+    and all of its budget."""
+    return list(study.get("report_at", None) or [study.frames // 2, study.frames])
 
 
 def result_dir(results: Path, study: DictConfig, task: str, algorithm: str, seed: int) -> Path:
