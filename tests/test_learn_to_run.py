@@ -160,7 +160,7 @@ def test_every_algorithm_trains_on_learn_to_run(algorithm, tmp_path):
 
 
 def test_the_id_is_listed_and_its_extra_named(hide_modules, tmp_path):
-    assert OSIM_IDS == ("LearnToRun-v0",)
+    assert OSIM_IDS == ("LearnToRun-v0", "LearnToMove-v0", "LearnToMove2D-v0")
     with pytest.raises(ValueError, match="(?s)not a registered gymnasium id.*LearnToRun-v0"):
         rave_mujoco.train(make_cfg(*TINY, "env.name=LearnToRun-v1"), str(tmp_path))
     hide_modules("torchrl_rave.envs.learn_to_run")

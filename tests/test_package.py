@@ -117,7 +117,8 @@ def test_the_wheel_ships_its_data_and_no_logs(fresh_venv):
     import zipfile
 
     names = zipfile.ZipFile(fresh_venv[3]).namelist()
-    assert "torchrl_rave/envs/assets/gait9dof18musc.osim" in names
+    for model in ("gait9dof18musc", "gait14dof22musc_20170320", "gait14dof22musc_planar_20170320"):
+        assert f"torchrl_rave/envs/assets/{model}.osim" in names
     assert "torchrl_rave/recipe/schema.py" in names
     assert not [n for n in names if n.endswith(".log")]
 
