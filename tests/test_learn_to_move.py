@@ -132,10 +132,11 @@ def test_a_footstep_is_paid_by_hand_from_the_recorded_steps(env3d):
         velocities.append(env3d.pelvis_velocity())
         contacts.append([env3d.foot_force(s)[1] < -0.05 * env3d.body_weight for s in "rl"])
         terms = info["reward_terms"]
+        assert set(terms) == set(L.REWARD_TERMS)
         assert reward == pytest.approx(sum(terms.values())) and not terminated
-        if "footstep" in terms:
+        if info["footsteps"]:
             break
-    assert "footstep" in terms, "no footstep within 30 steps of the drop"
+    assert info["footsteps"] == 1, "no footstep within 30 steps of the drop"
     n = len(activations)
     # a footstep: a foot in contact now that was not in the step before (at reset: standing)
     assert any(contacts[-1]) and (n == 1 or not all(contacts[-2]))
@@ -149,7 +150,8 @@ def test_a_footstep_is_paid_by_hand_from_the_recorded_steps(env3d):
     env3d.set_effort_weight(0.0)
     for _ in range(60):
         _, _, _, _, info = env3d.step(np.zeros(22))
-        if "footstep" in info["reward_terms"]:
+        if info["footsteps"] == 2:
+            assert info["reward_terms"]["footstep"] > 0
             assert info["reward_terms"]["effort"] == 0  # weight 0 from now on
             break
     with pytest.raises(ValueError, match="effort_weight"):
@@ -192,7 +194,7 @@ def test_round_two_pays_the_task_bonus_at_a_reached_target():
     easy.set_coordinates({"pelvis_tx": easy.field.sink[0], "pelvis_tz": -easy.field.sink[1]})
     easy.field.hold_seconds = 0.5 * DT
     _, _, _, _, info = easy.step(np.zeros(22))
-    assert info["targets_reached"] == 1 and "target" not in info["reward_terms"]
+    assert info["targets_reached"] == 1 and info["reward_terms"]["target"] == 0
 
 
 def test_bad_arguments_name_the_problem():
@@ -237,3 +239,22 @@ def test_the_recipe_trains_on_learn_to_move(algorithm, tmp_path):
     results = rave_mujoco.train(cfg, str(tmp_path))
     assert results["frames"] == 200 and results["updates"] > 0
     assert results["eval/return"] >= 0.1 and results["eval/falling_rate"] in (0.0, 1.0)
+
+
+def test_the_time_limit_pays_round_one_and_asks_round_two_for_footsteps():
+    easy = L.LearnToMoveEnv("2D", difficulty=0, time_limit=5)
+    easy.reset(seed=0)
+    for step in range(1, 6):
+        _, reward, terminated, truncated, info = easy.step(np.zeros(22))
+        assert truncated == (step == 5) and not terminated
+    assert info["success"] and info["footsteps"] == 0  # standing: no footstep
+    # the unfinished step's time (5 steps since the start) and the success bonus
+    assert info["reward_terms"]["footstep"] == pytest.approx(10 * 5 * DT)
+    assert info["reward_terms"]["success"] == 10.0
+    assert reward == pytest.approx(0.1 + 0.5 + 10.0)  # no velocity or effort term then
+    hard = L.LearnToMoveEnv("2D", difficulty=3, time_limit=5)
+    hard.reset(seed=0)
+    for _ in range(5):
+        _, reward, _, truncated, info = hard.step(np.zeros(22))
+    # round 2 succeeds only after more than 5 footsteps: nothing beyond the alive bonus
+    assert truncated and not info["success"] and reward == pytest.approx(0.1)

@@ -27,7 +27,8 @@ isometric force, its fiber length and velocity over its optimal fiber length.
 1,000 steps (``difficulty`` 0 to 2, the challenge's round 1) or 2,500 steps
 (``difficulty=3``, round 2).
 
-**Reward**, per step (its terms are in ``info["reward_terms"]``):
+**Reward**, per step, the sum of six terms (:data:`REWARD_TERMS`; each step's are in
+``info["reward_terms"]``, 0 where a term does not apply):
 
 - ``alive``: 0.1;
 - at each new footstep (a foot whose vertical ground force passes 5 % of body weight):
@@ -81,6 +82,7 @@ CONTACT_SHARE = 0.05  # of body weight
 SUCCESS_BONUS = 10.0  # round 1
 SUCCESS_FOOTSTEPS = 5  # round 2: more than this many
 TARGET_BONUS = 500.0  # round 2
+REWARD_TERMS = ("alive", "footstep", "velocity", "effort", "success", "target")
 
 # the challenge's muscle codes, and the model's muscle name for each
 MUSCLE_CODES = ("HAB", "HAD", "HFL", "GLU", "HAM", "RF", "VAS", "BFSH", "GAS", "SOL", "TA")
@@ -309,6 +311,7 @@ class LearnToMoveEnv(gym.Env):
     """
 
     metadata = {"render_modes": []}
+    reward_term_names = REWARD_TERMS  # the recipe reads them into ("next", "reward_terms")
 
     def __init__(
         self,
@@ -431,17 +434,18 @@ class LearnToMoveEnv(gym.Env):
         self._steps += 1
         self._state = self._manager.integrate(STEP_SECONDS * self._steps)
         self._model.realizeDynamics(self._state)
-        terms = self.reward_terms()
+        terms = self._step_terms()
         terminated = self.pelvis_height() < self.fall_height
         truncated = self._steps >= self.time_limit and not terminated
         info = {"pelvis_height": self.pelvis_height(), "footsteps": self.footsteps,
                 "targets_reached": self.field.targets_reached}  # fmt: skip
         if truncated:
-            terms.update(self._finish(info))
+            for name, value in self._finish(info).items():
+                terms[name] += value  # a footstep paid in this very step stays paid
         info["reward_terms"] = terms
         return self._observation(), float(sum(terms.values())), terminated, truncated, info
 
-    def reward_terms(self) -> dict[str, float]:
+    def _step_terms(self) -> dict[str, float]:
         """This step's reward terms, from the state it ended in: ``alive``; on a new footstep
         ``footstep``, ``velocity`` and ``effort``; on a reached target ``target`` (round 2)."""
         since = self._since_step
@@ -450,7 +454,8 @@ class LearnToMoveEnv(gym.Env):
         since["effort"] += float(activations @ activations) * STEP_SECONDS
         x, y, _ = self.pose()
         since["velocity"] += (self.pelvis_velocity() - self.field.velocity([x, y])) * STEP_SECONDS
-        terms = {"alive": ALIVE_BONUS}
+        terms = dict.fromkeys(REWARD_TERMS, 0.0)
+        terms["alive"] = ALIVE_BONUS
         contact = {
             side: self.foot_force(side)[1] < -CONTACT_SHARE * self.body_weight for side in SIDES
         }
@@ -485,9 +490,7 @@ class LearnToMoveEnv(gym.Env):
         info["success"] = self.footsteps > SUCCESS_FOOTSTEPS
         if not info["success"]:
             return {}
-        pay = self._pay_step()
-        # a footstep in this very step was paid already; the unfinished one adds to it
-        return pay
+        return self._pay_step()
 
     # reading the state
     def pose(self) -> np.ndarray:
