@@ -55,6 +55,7 @@ from torchrl_rave.recipe.config import (
     world_model_sizes,
 )
 from torchrl_rave.trainers import WorldModelTrainer
+from torchrl_rave.transforms import RewardTermsReader
 
 __all__ = [
     "Agent",
@@ -210,8 +211,10 @@ def load_policy(
 def make_env(cfg: DictConfig, device: torch.device) -> TransformedEnv:
     """The training (or evaluation) env: float32, step counter, episode return, reward
     scaling; with ``env.action_noise > 0`` its transitions are made stochastic by
-    :class:`~torchrl_rave.envs.ActuatorNoise`. Optional families (PyBullet ids) are
-    registered first, here as in workers."""
+    :class:`~torchrl_rave.envs.ActuatorNoise`. An env that names its reward terms
+    (``reward_term_names``, e.g. ``LearnToMove-v0``) gets them as ``("next",
+    "reward_terms", name)`` entries (:class:`~torchrl_rave.transforms.RewardTermsReader`).
+    Optional families (PyBullet ids) are registered first, here as in workers."""
     import gymnasium as gym
 
     import_env_family(cfg.env.name.split(":")[-1])
@@ -221,6 +224,12 @@ def make_env(cfg: DictConfig, device: torch.device) -> TransformedEnv:
         base = GymWrapper(ActuatorNoise(gym.make(cfg.env.name, **kwargs), noise), device=device)
     else:  # exactly the env of a run without the key
         base = GymEnv(cfg.env.name, device=device, **kwargs)
+    try:
+        terms = base._env.get_wrapper_attr("reward_term_names")
+    except AttributeError:
+        terms = None
+    if terms:  # an env whose reward is a sum of named terms: they reach the replay buffer
+        base.set_info_dict_reader(RewardTermsReader(terms))
     env = TransformedEnv(base, DoubleToFloat())
     env.append_transform(StepCounter())
     env.append_transform(RewardSum())  # before the scaling: returns stay in env units

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import importlib
 import importlib.util
+import math
 import os
 import re
 from dataclasses import dataclass
@@ -202,9 +203,51 @@ def check_config(cfg: DictConfig) -> Algorithm:
             problems.append(problem)
     if "collector.backend" not in bad and c.backend == "ray":
         _check_ray(cfg, problems)
+    _check_reward(cfg, bad, problems)
     if problems:
         raise ConfigError(problems)
     return ALGORITHMS[cfg.algorithm]
+
+
+def _check_reward(cfg: DictConfig, bad: set, problems: list[str]) -> None:
+    """The ``reward`` keys: weights are numbers; the delayed term has a start condition
+    (frames, or a metric with its threshold); only off-policy algorithms relabel."""
+    from torchrl_rave.recipe.metrics import METRICS
+
+    r = cfg.get("reward")
+    if r is None or bad & {k for k in _SCHEMA if k.startswith("reward.")}:
+        return
+    weights = dict(r.weights or {})
+    for name, value in weights.items():
+        if (
+            isinstance(value, bool)
+            or not isinstance(value, (int, float))
+            or not math.isfinite(value)
+        ):
+            problems.append(_invalid(f"reward.weights.{name}", value, "a finite number"))
+    if r.delayed is None:
+        for k in ("delay_frames", "delay_metric", "delay_threshold"):
+            if r[k] is not None:
+                problems.append(
+                    _invalid(f"reward.{k}", r[k], "null unless reward.delayed names a term")
+                )
+    else:
+        if r.delay_frames is None and r.delay_metric is None:
+            problems.append(_invalid("reward.delayed", r.delayed, "a term with reward.delay_frames, "
+                                     "or reward.delay_metric and reward.delay_threshold, to start it"))  # fmt: skip
+        if (r.delay_metric is None) != (r.delay_threshold is None):
+            problems.append(_invalid("reward.delay_metric", r.delay_metric,
+                                     "set together with reward.delay_threshold"))  # fmt: skip
+        evals = sorted(k for k in METRICS if k.startswith("eval/"))
+        if r.delay_metric is not None and r.delay_metric not in evals:
+            problems.append(_invalid("reward.delay_metric", r.delay_metric, f"one of {evals}"))
+    if (
+        (weights or r.delayed is not None)
+        and "algorithm" not in bad
+        and ALGORITHMS[cfg.algorithm].on_policy
+    ):
+        problems.append(_invalid("algorithm", cfg.algorithm, "an off-policy algorithm with reward.weights "
+                                 "or reward.delayed (the relabelling is a replay-buffer transform)"))  # fmt: skip
 
 
 def check_command_line(overrides: list[str]) -> None:

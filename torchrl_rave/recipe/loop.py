@@ -52,6 +52,7 @@ from torchrl_rave.recipe.config import (
     resolve_config,
 )
 from torchrl_rave.recipe.evaluate import evaluate_agent, make_logger
+from torchrl_rave.recipe.reward import make_reward_relabelling, update_reward_weights
 from torchrl_rave.recipe.schema import default_config, defaults  # noqa: F401 (the example)
 from torchrl_rave.recipe.update import make_agent_step, ppo_update
 
@@ -84,6 +85,9 @@ def _train(cfg: DictConfig, run_dir: str) -> dict[str, float]:
     env, eval_env = make_env(cfg, device), make_env(cfg, device)
     agent = make_agent(cfg, env, device)
     rb = make_replay_buffer(cfg, device)
+    relabel, delayed = make_reward_relabelling(cfg, env)
+    if relabel is not None:  # every sample is relabelled with the weights of the moment
+        rb.append_transform(relabel)
     update_agent = None
     if not agent.algorithm.on_policy:
         update_agent = make_agent_step(cfg, agent.loss, agent.optimizers, agent.target_updater)
@@ -152,7 +156,12 @@ def _train(cfg: DictConfig, run_dir: str) -> dict[str, float]:
                     rb.extend(data)
                     if agent.world_model_trainer is not None:
                         agent.world_model_trainer.extend(data)
+                    weights = {}
+                    if relabel is not None:
+                        weights = update_reward_weights(cfg, relabel, delayed, counters, last_eval)
                     acc = update_on_batch(cfg, agent, update_agent, rb, counters, data.numel())
+                    for key, value in weights.items():
+                        acc[key].append(torch.tensor(value))
                 update_s = time.perf_counter() - t_update
                 if counters["updates"] - synced_at >= cfg.collector.weight_sync_every:
                     push_policy_weights(collector, agent.policy)

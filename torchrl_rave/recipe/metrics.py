@@ -40,6 +40,10 @@ METRICS: dict[str, str] = {
     ),
     "train/horizon_weight_h{H}": "mean normalised weight w_H of the horizon-H candidates",
     "train/candidate_variance_h{H}": "mean variance V_H of the horizon-H candidate targets",
+    "train/reward_weight_{name}": (
+        "with ``reward.weights`` or ``reward.delayed``: the weight of reward term ``name`` "
+        "the batch's updates relabelled with"
+    ),
     "time/collect_s": "seconds spent collecting the batch",
     "time/update_s": "seconds spent updating on the batch (agent and world model)",
     "time/eval_s": "seconds spent evaluating (batches that end with an evaluation)",

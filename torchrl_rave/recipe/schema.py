@@ -25,6 +25,7 @@ from hydra.core.config_store import ConfigStore
 from omegaconf import DictConfig, OmegaConf
 
 from torchrl_rave._checks import (
+    FINITE,
     NON_NEGATIVE,
     NON_NEGATIVE_INT,
     POSITIVE,
@@ -337,6 +338,43 @@ class EvalConfig:
 
 
 @dataclass
+class RewardConfig:
+    weights: dict[str, float] | None = key(
+        None,
+        (
+            "weights of the env's reward terms by name, for an env that reports them "
+            "(`LearnToMove-v0`: alive, footstep, velocity, effort, success, target); the "
+            "learner trains on the reweighted sum, relabelled at every replay-buffer sample "
+            "(`torchrl_rave.transforms.ReweightRewardTerms`), while evaluation reports the "
+            "env's own reward. A term not named keeps weight 1 (e.g. `reward.weights={effort:2.0}`). "
+            "Off-policy algorithms"
+        ),
+    )
+    delayed: str | None = key(
+        None,
+        (
+            "a reward term whose weight is 0 until `reward.delay_frames` frames, or until "
+            "`reward.delay_metric` reaches `reward.delay_threshold`, whichever comes first, "
+            "and then ramps linearly to its weight over `reward.ramp_frames` frames "
+            "(`torchrl_rave.transforms.DelayedWeight`; the paper's low-energy stage is "
+            "`reward.delayed=effort`)"
+        ),
+    )
+    delay_frames: int | None = key(
+        None, "frames at which the delayed term starts", optional(NON_NEGATIVE_INT)
+    )
+    delay_metric: str | None = key(
+        None, "an evaluation metric (e.g. `eval/return`) that starts the delayed term"
+    )
+    delay_threshold: float | None = key(
+        None, "the value of `reward.delay_metric` that starts the delayed term", optional(FINITE)
+    )
+    ramp_frames: int = key(
+        0, "frames over which the delayed term ramps from 0 to its weight", NON_NEGATIVE_INT
+    )
+
+
+@dataclass
 class CheckpointConfig:
     interval: int = key(5_000, "frames between checkpoints (one more at the end)", POSITIVE_INT)
 
@@ -413,6 +451,7 @@ class RecipeConfig:
     ppo: PPOConfig = field(default_factory=PPOConfig)
     exploration: ExplorationConfig = field(default_factory=ExplorationConfig)
     eval: EvalConfig = field(default_factory=EvalConfig)
+    reward: RewardConfig = field(default_factory=RewardConfig)
     checkpoint: CheckpointConfig = field(default_factory=CheckpointConfig)
     logger: LoggerConfig = field(default_factory=LoggerConfig)
 
