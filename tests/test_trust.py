@@ -242,6 +242,12 @@ class TestSavedConfig:
         cfg = config_for_resume(run, [f"resume={run}", "env.kwargs=null"], defaults())
         assert cfg.env.kwargs is None
 
+    def test_a_saved_curriculum_of_file_names_is_not_followed(self, run):
+        edit_config(run, **{"curriculum.kwarg": "xml_file", "curriculum.stages": ["/etc/hostname"],
+                            "curriculum.thresholds": []})  # fmt: skip
+        with pytest.raises(UntrustedRunConfig, match="curriculum.stages=\\['/etc/hostname'\\]"):
+            config_for_resume(run, [f"resume={run}"], defaults())
+
     def test_a_saved_ray_address_is_not_joined(self, run):
         edit_config(run, **{"ray.address": "127.0.0.1:9", "collector.backend": "ray"})
         with pytest.raises(UntrustedRunConfig, match="ray.address='127.0.0.1:9', which joins"):

@@ -120,22 +120,23 @@ class TargetVelocityField:
     """The 2019 challenge's target-velocity field on the ground plane ``(x forward,
     y leftward)``, for ``difficulty`` 0 to 3.
 
-    Difficulty 0 is a constant 1.4 m/s forward. Otherwise a *sink* is placed 5 to 7 m from
-    the walker at a random heading (straight ahead for 1; within +-90 degrees for 2;
-    anywhere for 3), and the field points at it everywhere on a 40 x 40 m map around the
-    walker, sampled every 0.5 m: its speed is ``v_max`` beyond the sink's distance ``D``
-    plus 1 m, ``v_mid + v_amp sin(phase + 2 pi d / D)`` at distance ``d`` from the sink
-    down to 1 m, and from there falls linearly to 0 at the sink (speeds between 0.8 and
-    1.8 m/s by default; ``phase`` is random). Standing within 0.3 m of the sink for a random
-    2 to 4 s reaches it: a new sink is placed 5 to 7 m further on, the heading turning by
-    a random angle of the same range, and the map is centred on the walker again. Targets
-    never run out at difficulty 1 and 2; difficulty 3 has two. Between map points the field
-    is bilinear.
+    Difficulty 0 is a constant ``constant_speed`` (1.4 m/s in the challenge) forward.
+    Otherwise a *sink* is placed 5 to 7 m from the walker at a random heading (straight
+    ahead for 1; within +-90 degrees for 2; anywhere for 3), and the field points at it
+    everywhere on a 40 x 40 m map around the walker, sampled every 0.5 m: its speed is
+    ``v_max`` beyond the sink's distance ``D`` plus 1 m, ``v_mid + v_amp sin(phase + 2
+    pi d / D)`` at distance ``d`` from the sink down to 1 m, and from there falls
+    linearly to 0 at the sink (speeds between 0.8 and 1.8 m/s by default; ``phase`` is
+    random). Standing within 0.3 m of the sink for a random 2 to 4 s reaches it: a new
+    sink is placed 5 to 7 m further on, the heading turning by a random angle of the
+    same range, and the map is centred on the walker again. Targets never run out at
+    difficulty 1 and 2; difficulty 3 has two. Between map points the field is bilinear.
 
     Args:
         difficulty (int): 0 to 3.
         dt (float): seconds per :meth:`update`.
         speed_range (tuple[float, float]): the sink field's lowest and highest speed (m/s).
+        constant_speed (float): difficulty 0's forward speed (m/s).
 
     Examples:
         >>> field = TargetVelocityField(difficulty=0)
@@ -155,13 +156,13 @@ class TargetVelocityField:
     TARGET_RADIUS = 0.3
     HOLD_SECONDS = (2.0, 4.0)
     SLOW_RADIUS = 1.0
-    CONSTANT = np.array([1.4, 0.0])
 
     def __init__(
         self,
         difficulty: int,
         dt: float = STEP_SECONDS,
         speed_range: tuple[float, float] = (0.8, 1.8),
+        constant_speed: float = 1.4,
     ):
         if difficulty not in TIME_LIMITS:
             raise ValueError(f"difficulty must be one of {sorted(TIME_LIMITS)}, got {difficulty!r}")
@@ -173,6 +174,9 @@ class TargetVelocityField:
         self.difficulty = difficulty
         self.dt = float(dt)
         self.speed_range = (low, high)
+        if not (math.isfinite(constant_speed) and constant_speed >= 0):
+            raise ValueError(f"constant_speed must be finite and >= 0, got {constant_speed}")
+        self.constant = np.array([float(constant_speed), 0.0])
         grid = np.meshgrid(self.QUERY_OFFSETS, self.QUERY_OFFSETS, indexing="ij")
         self._query = np.stack(grid)  # [2, 11, 11]: [forward, leftward] offsets, [i_x, i_y]
 
@@ -235,7 +239,7 @@ class TargetVelocityField:
         """Bilinear interpolation of the map at points ``(x, y)`` (any equal shapes), held at
         the nearest map value outside it: ``[2, *shape]``."""
         if self.sink is None:
-            return np.broadcast_to(self.CONSTANT.reshape(2, *([1] * np.ndim(x))), (2, *np.shape(x)))
+            return np.broadcast_to(self.constant.reshape(2, *([1] * np.ndim(x))), (2, *np.shape(x)))
         fx = np.clip((x - self.map_x[0]) / self.MAP_SPACING, 0, len(self.map_x) - 1)
         fy = np.clip((y - self.map_y[0]) / self.MAP_SPACING, 0, len(self.map_y) - 1)
         ix = np.minimum(fx.astype(int), len(self.map_x) - 2)
@@ -294,6 +298,8 @@ class LearnToMoveEnv(gym.Env):
             :meth:`set_effort_weight` changes it between episodes or steps.
         speed_range (tuple[float, float]): the sink field's lowest and highest target
             speed (m/s); the challenge's is (0.8, 1.8).
+        constant_speed (float): difficulty 0's target speed (m/s), forward; 1.4 in the
+            challenge. With ``speed_range``, what a target-speed curriculum sets.
         init_pose_noise (float): half-width, in rad, of uniform noise on the eight leg
             angles at reset, from the env's seed; 0 (the challenge's fixed start).
         fall_height (float): the episode terminates once the pelvis is below this height
@@ -320,6 +326,7 @@ class LearnToMoveEnv(gym.Env):
         integrator_accuracy: float = 1e-3,
         effort_weight: float = 1.0,
         speed_range: tuple[float, float] = (0.8, 1.8),
+        constant_speed: float = 1.4,
         init_pose_noise: float = 0.0,
         fall_height: float = FALL_HEIGHT,
         time_limit: int | None = None,
@@ -341,7 +348,7 @@ class LearnToMoveEnv(gym.Env):
         self.init_pose_noise = float(init_pose_noise)
         self.fall_height = float(fall_height)
         self.set_effort_weight(effort_weight)
-        self.field = TargetVelocityField(difficulty, STEP_SECONDS, speed_range)
+        self.field = TargetVelocityField(difficulty, STEP_SECONDS, speed_range, constant_speed)
 
         opensim.Logger.setLevelString("error")
         self._model = opensim.Model(model_path(model))

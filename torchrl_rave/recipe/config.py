@@ -204,6 +204,7 @@ def check_config(cfg: DictConfig) -> Algorithm:
     if "collector.backend" not in bad and c.backend == "ray":
         _check_ray(cfg, problems)
     _check_reward(cfg, bad, problems)
+    _check_curriculum(cfg, bad, problems)
     if problems:
         raise ConfigError(problems)
     return ALGORITHMS[cfg.algorithm]
@@ -248,6 +249,35 @@ def _check_reward(cfg: DictConfig, bad: set, problems: list[str]) -> None:
     ):
         problems.append(_invalid("algorithm", cfg.algorithm, "an off-policy algorithm with reward.weights "
                                  "or reward.delayed (the relabelling is a replay-buffer transform)"))  # fmt: skip
+
+
+def _check_curriculum(cfg: DictConfig, bad: set, problems: list[str]) -> None:
+    """The ``curriculum`` keys: stages with one threshold between each two, and an
+    evaluation metric."""
+    from torchrl_rave.recipe.metrics import METRICS
+
+    c = cfg.get("curriculum")
+    if c is None or bad & {k for k in _SCHEMA if k.startswith("curriculum.")}:
+        return
+    if c.kwarg is None:
+        for k in ("stages", "thresholds"):
+            if c[k] is not None:
+                problems.append(
+                    _invalid(f"curriculum.{k}", c[k], "null unless curriculum.kwarg is set")
+                )
+        return
+    values, thresholds = list(c.stages or []), list(c.thresholds or [])
+    if not values:
+        problems.append(_invalid("curriculum.stages", c.stages, "a list of the stages' values"))
+    if len(thresholds) != max(0, len(values) - 1) or not all(
+        isinstance(t, (int, float)) and not isinstance(t, bool) and math.isfinite(t)
+        for t in thresholds
+    ):
+        problems.append(_invalid("curriculum.thresholds", c.thresholds,
+                                 f"{max(0, len(values) - 1)} finite numbers, one per stage but the last"))  # fmt: skip
+    evals = sorted(k for k in METRICS if k.startswith("eval/"))
+    if c.metric not in evals:
+        problems.append(_invalid("curriculum.metric", c.metric, f"one of {evals}"))
 
 
 def check_command_line(overrides: list[str]) -> None:

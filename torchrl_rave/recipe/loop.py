@@ -51,6 +51,7 @@ from torchrl_rave.recipe.config import (
     replay_buffer_size,
     resolve_config,
 )
+from torchrl_rave.recipe.curriculum import make_curriculum, stage_config
 from torchrl_rave.recipe.evaluate import evaluate_agent, make_logger
 from torchrl_rave.recipe.reward import make_reward_relabelling, update_reward_weights
 from torchrl_rave.recipe.schema import default_config, defaults  # noqa: F401 (the example)
@@ -99,13 +100,22 @@ def _train(cfg: DictConfig, run_dir: str) -> dict[str, float]:
     checkpoint.preflight(
         lambda block: agent.checkpoint_bytes(cfg.replay_buffer.size, transition, block)
     )
-    counters = {"frames": 0, "updates": 0, "update_budget": 0.0}
+    counters = {"frames": 0, "updates": 0, "update_budget": 0.0, "curriculum_stage": 0}
     counters.update(next_eval=cfg.eval.interval, next_checkpoint=cfg.checkpoint.interval)
     logger_state: dict = {}
     if cfg.resume:
         state = dict(counters=counters, replay_buffer=rb, logger=logger_state)
         checkpoint.load(**state, **agent.state_components())
     logger = make_logger(cfg, run_dir, logger_state or None)
+    # A curriculum's envs carry its stage's setting; a resumed run continues its stage.
+    curriculum, run_cfg = make_curriculum(cfg), cfg
+    if curriculum is not None:
+        curriculum.load_state_dict({"stage": counters["curriculum_stage"]})
+        run_cfg = stage_config(cfg, curriculum)
+        if curriculum.stage:
+            env.close()
+            eval_env.close()
+            env, eval_env = make_env(run_cfg, device), make_env(run_cfg, device)
     # A resumed run restarts its episode; a new seed keeps it from replaying old ones.
     env.set_seed(cfg.env.seed + counters["frames"])
 
@@ -128,8 +138,9 @@ def _train(cfg: DictConfig, run_dir: str) -> dict[str, float]:
     start, frames_at_start = time.perf_counter(), counters["frames"]
     collector = None
     with StopRequest() as stop, shutdown_on_error(lambda: collector):
-        if counters["frames"] < total:
-            collector = make_collector(cfg, env, agent.policy, device, counters["frames"])
+        while counters["frames"] < total:  # again after each curriculum stage
+            collector = make_collector(run_cfg, env, agent.policy, device, counters["frames"])
+            next_stage = False
             synced_at = counters["updates"]  # the workers start with the current weights
             t_collect = time.perf_counter()
             batches = guarded_batches(
@@ -180,6 +191,7 @@ def _train(cfg: DictConfig, run_dir: str) -> dict[str, float]:
                     metrics["time/updates_per_s"] = n_updates / max(update_s, 1e-9)
                 frames_now = counters["frames"]
                 metrics["time/fps"] = (frames_now - frames_at_start) / (time.perf_counter() - start)
+                stage = None if curriculum is None else curriculum.stage  # collected in
                 if frames_now >= counters["next_eval"] or frames_now >= total:
                     t_eval = time.perf_counter()
                     eval_env.set_seed(cfg.env.seed + 1_000_003 + frames_now)
@@ -195,6 +207,11 @@ def _train(cfg: DictConfig, run_dir: str) -> dict[str, float]:
                     metrics["time/eval_s"] = time.perf_counter() - t_eval
                     while counters["next_eval"] <= frames_now:
                         counters["next_eval"] += cfg.eval.interval
+                    if curriculum is not None and frames_now < total:
+                        next_stage = curriculum.update(last_eval)
+                        counters["curriculum_stage"] = curriculum.stage
+                if stage is not None:
+                    metrics["train/curriculum_stage"] = stage
                 metrics.update(q_at_points(agent.loss, cfg.logger.q_points, cfg.env.reward_scale))
                 if logger is not None:
                     for key, value in metrics.items():
@@ -210,9 +227,18 @@ def _train(cfg: DictConfig, run_dir: str) -> dict[str, float]:
                     while counters["next_checkpoint"] <= frames_now:
                         counters["next_checkpoint"] += cfg.checkpoint.interval
                     save_checkpoint()
-                if stop.requested:
+                if stop.requested or next_stage:
                     break
                 t_collect = time.perf_counter()
+            if stop.requested or not next_stage:
+                break
+            # the next stage: new envs with its setting, and a collector for them
+            collector.shutdown()
+            run_cfg = stage_config(cfg, curriculum)
+            env.close()
+            eval_env.close()
+            env, eval_env = make_env(run_cfg, device), make_env(run_cfg, device)
+            env.set_seed(cfg.env.seed + counters["frames"])
     pbar.close()
     if collector is not None:
         collector.shutdown()

@@ -44,6 +44,7 @@ METRICS: dict[str, str] = {
         "with ``reward.weights`` or ``reward.delayed``: the weight of reward term ``name`` "
         "the batch's updates relabelled with"
     ),
+    "train/curriculum_stage": "with ``curriculum.kwarg``: the stage the batch was collected in (from 0)",
     "time/collect_s": "seconds spent collecting the batch",
     "time/update_s": "seconds spent updating on the batch (agent and world model)",
     "time/eval_s": "seconds spent evaluating (batches that end with an evaluation)",

@@ -375,6 +375,27 @@ class RewardConfig:
 
 
 @dataclass
+class CurriculumConfig:
+    kwarg: str | None = key(
+        None,
+        (
+            "an env keyword (of `env.kwargs`) that steps through `curriculum.stages`: the "
+            "target-speed curriculum is `curriculum.kwarg=constant_speed` (or `speed_range`) "
+            "on `LearnToMove-v0`. When `curriculum.metric` reaches the stage's threshold at "
+            "an evaluation, the training and evaluation envs (and collector workers) are "
+            "rebuilt with the next value; checkpoints keep the stage. Any algorithm"
+        ),
+    )
+    stages: list[Any] | None = key(
+        None, "the keyword's value at each stage, first to last (e.g. `[3.0,2.0,1.4]`)"
+    )
+    thresholds: list[float] | None = key(
+        None, "the metric value that ends each stage but the last (one per stage but the last)"
+    )
+    metric: str = key("eval/return", "the evaluation metric the thresholds apply to")
+
+
+@dataclass
 class CheckpointConfig:
     interval: int = key(5_000, "frames between checkpoints (one more at the end)", POSITIVE_INT)
 
@@ -452,6 +473,7 @@ class RecipeConfig:
     exploration: ExplorationConfig = field(default_factory=ExplorationConfig)
     eval: EvalConfig = field(default_factory=EvalConfig)
     reward: RewardConfig = field(default_factory=RewardConfig)
+    curriculum: CurriculumConfig = field(default_factory=CurriculumConfig)
     checkpoint: CheckpointConfig = field(default_factory=CheckpointConfig)
     logger: LoggerConfig = field(default_factory=LoggerConfig)
 

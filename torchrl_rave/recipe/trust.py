@@ -46,6 +46,14 @@ def outside_references(cfg: DictConfig) -> dict[str, tuple[object, str]]:
                 value,
                 "is passed to the env, which may open it as a file",
             )
+    curriculum = cfg.get("curriculum") or {}
+    if curriculum.get("kwarg") is not None:  # each stage's value becomes an env keyword
+        stages = curriculum.get("stages") or []
+        if any(isinstance(v, str) for v in stages):
+            found["curriculum.stages"] = (
+                list(stages),
+                "passes strings to the env as a keyword, which it may open as files",
+            )
     return found
 
 

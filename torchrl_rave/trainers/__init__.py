@@ -1,5 +1,6 @@
 """Training helpers that plug into any TorchRL loop or ``torchrl.trainers.Trainer``."""
 
+from torchrl_rave.trainers.curriculum import Curriculum
 from torchrl_rave.trainers.world_model import WorldModelTrainer
 
-__all__ = ["WorldModelTrainer"]
+__all__ = ["Curriculum", "WorldModelTrainer"]
