@@ -318,6 +318,7 @@ class LearnToMoveEnv(gym.Env):
 
     metadata = {"render_modes": []}
     reward_term_names = REWARD_TERMS  # the recipe reads them into ("next", "reward_terms")
+    target_observation = OBSERVATION_LAYOUT["target_field"]  # what distillation noises
 
     def __init__(
         self,

@@ -1,0 +1,75 @@
+"""Noisy-target distillation of a trained run (the paper's supplement, Learn to Move).
+
+    python recipes/distill.py outputs/DATE/TIME --out outputs/distilled --frames 20000
+    python recipes/rave_mujoco.py resume=outputs/distilled collector.total_frames=2000000
+
+Collects (observation, action) pairs from the run's latest deterministic policy, fits a
+freshly built actor of the run's config on them with the target part of each observation
+(``--target START:STOP``; by default the env's own ``target_observation``, the 2 x 11 x 11
+target-velocity field of ``LearnToMove-v0``) replaced by uniform noise over its range, and
+writes a new run directory whose checkpoint is the source's with that actor, ready for
+``resume=``. See :mod:`torchrl_rave.recipe.distill`.
+"""
+
+from __future__ import annotations
+
+import argparse
+
+import torch
+
+from torchrl_rave.recipe.agent import make_env
+from torchrl_rave.recipe.checkpoint import saved_config
+from torchrl_rave.recipe.distill import distill_run
+from torchrl_rave.recipe.schema import defaults
+
+
+def target_slice(text: str, run_dir: str, trust: bool) -> slice:
+    """``START:STOP``, or with ``auto`` the env's ``target_observation``."""
+    if text != "auto":
+        start, _, stop = text.partition(":")
+        return slice(int(start) if start else None, int(stop) if stop else None)
+    cfg = saved_config(run_dir, defaults())
+    if not trust and ":" in str(cfg.env.name):
+        raise SystemExit(f"{run_dir}: env.name={cfg.env.name!r} imports a module; pass --trust")
+    env = make_env(cfg, torch.device("cpu"))
+    try:
+        return env.base_env._env.get_wrapper_attr("target_observation")
+    except AttributeError:
+        raise SystemExit(
+            f"{cfg.env.name} names no target part of its observation: pass --target START:STOP"
+        ) from None
+    finally:
+        env.close()
+
+
+def main(argv=None) -> dict:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("run", help="the trained run directory")
+    parser.add_argument("--out", required=True, help="the new run directory (must not exist)")
+    parser.add_argument(
+        "--target", default="auto", help="START:STOP of the observation's target part"
+    )
+    parser.add_argument("--frames", type=int, default=10_000, help="pairs to collect")
+    parser.add_argument("--steps", type=int, default=2000, help="Adam steps of the fit")
+    parser.add_argument(
+        "--low", type=float, help="the noise's low end (default: each entry's minimum)"
+    )
+    parser.add_argument("--high", type=float, help="its high end (default: each entry's maximum)")
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--trust", action="store_true", help="trust the run directory's config")
+    args = parser.parse_args(argv)
+    target = target_slice(args.target, args.run, args.trust)
+    result = distill_run(
+        args.run, args.out, target, frames=args.frames, low=args.low, high=args.high,
+        steps=args.steps, seed=args.seed, trust=args.trust,
+    )  # fmt: skip
+    print(
+        f"distilled {args.run} into {args.out}: {result['pairs']} pairs, target {target}, "
+        f"loss {result['first_loss']:.4g} -> {result['last_loss']:.4g}; train on with "
+        f"resume={args.out}"
+    )
+    return result
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,176 @@
+"""Noisy-target distillation (the paper's supplement, Learn to Move): fit a fresh policy
+on a trained one's (observation, action) pairs with the target part of the observation
+replaced by uniform noise over its range, so that the new policy reproduces the old gait
+whatever the target says and later training can make it follow the target.
+
+:func:`distill_actor` is the fitting, on any TorchRL actor; :func:`distill_run` is what
+``python recipes/distill.py`` runs: a run directory in, a run directory out, whose
+checkpoint is the source's with the actor (and its target copy) replaced, so that
+``resume=<out>`` trains on from it.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import torch
+from omegaconf import OmegaConf
+from tensordict import TensorDict
+from tensordict.nn import TensorDictModuleBase
+from torchrl.envs.utils import ExplorationType, set_exploration_type
+
+from torchrl_rave.recipe.agent import make_actor, make_agent, make_env, make_replay_buffer
+from torchrl_rave.recipe.checkpoint import RunCheckpoint, saved_config
+from torchrl_rave.recipe.schema import defaults
+
+__all__ = ["collect_pairs", "distill_actor", "distill_run"]
+
+
+@torch.no_grad()
+def collect_pairs(
+    env, actor: TensorDictModuleBase, frames: int, seed: int = 0
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """``frames`` (observation, action) pairs ``[frames, obs]``, ``[frames, act]`` of
+    ``actor``'s deterministic policy in ``env``, episode after episode from ``seed``."""
+    observations, actions = [], []
+    env.set_seed(seed)
+    with set_exploration_type(ExplorationType.DETERMINISTIC):
+        while sum(len(o) for o in observations) < frames:
+            rollout = env.rollout(frames, actor, break_when_any_done=True)
+            observations.append(rollout["observation"])
+            actions.append(rollout["action"])
+    return torch.cat(observations)[:frames], torch.cat(actions)[:frames]
+
+
+def distill_actor(
+    student: TensorDictModuleBase,
+    observations: torch.Tensor,
+    actions: torch.Tensor,
+    target: slice,
+    low: torch.Tensor | float,
+    high: torch.Tensor | float,
+    *,
+    steps: int = 2000,
+    batch_size: int = 256,
+    lr: float = 1e-3,
+    generator: torch.Generator | None = None,
+) -> list[float]:
+    """Fits ``student``'s deterministic action to ``actions`` (mean squared error, Adam),
+    each minibatch's ``observations[:, target]`` replaced by uniform noise in
+    ``[low, high]`` (per entry, or one number). Returns the loss of every step.
+
+    Examples:
+        >>> from torchrl.modules import MLP
+        >>> from tensordict.nn import TensorDictModule
+        >>> student = TensorDictModule(MLP(in_features=3, out_features=1, num_cells=[16]),
+        ...                            in_keys=["observation"], out_keys=["action"])
+        >>> obs = torch.randn(512, 3)
+        >>> act = 0.5 * obs[:, :1]  # the teacher reads the first entry; the rest is target
+        >>> losses = distill_actor(student, obs, act, slice(1, 3), -1.0, 1.0, steps=300)
+        >>> losses[-1] < 0.05 * losses[0]
+        True
+    """
+    if observations.shape[0] != actions.shape[0] or observations.shape[0] == 0:
+        raise ValueError(
+            f"distill_actor needs as many actions as observations, and some: got "
+            f"{observations.shape[0]} observations and {actions.shape[0]} actions"
+        )
+    width = len(range(*target.indices(observations.shape[-1])))
+    if width == 0:
+        raise ValueError(f"the target slice {target} selects nothing of {observations.shape[-1]}")
+    low = torch.as_tensor(low, dtype=observations.dtype).expand(width)
+    high = torch.as_tensor(high, dtype=observations.dtype).expand(width)
+    if not bool((low <= high).all()):
+        raise ValueError("the target range must have low <= high")
+    optimizer = torch.optim.Adam(student.parameters(), lr=lr)
+    losses = []
+    with set_exploration_type(ExplorationType.DETERMINISTIC):
+        for _ in range(steps):
+            pick = torch.randint(0, observations.shape[0], (batch_size,), generator=generator)
+            obs = observations[pick].clone()
+            noise = torch.rand(batch_size, width, generator=generator, dtype=obs.dtype)
+            obs[:, target] = low + (high - low) * noise
+            predicted = student(TensorDict(observation=obs, batch_size=[batch_size]))["action"]
+            loss = torch.nn.functional.mse_loss(predicted, actions[pick])
+            optimizer.zero_grad()
+            loss.backward()
+            optimizer.step()
+            losses.append(loss.item())
+    return losses
+
+
+def distill_run(
+    run_dir: str | Path,
+    out_dir: str | Path,
+    target: slice,
+    *,
+    frames: int = 10_000,
+    low: float | None = None,
+    high: float | None = None,
+    steps: int = 2000,
+    seed: int = 0,
+    trust: bool = False,
+) -> dict:
+    """Collects ``frames`` pairs from ``run_dir``'s latest policy, fits a freshly built
+    actor of the same config on them (:func:`distill_actor`; the target range is
+    ``[low, high]``, or each target entry's range in the pairs), and writes ``out_dir``:
+    a run directory whose checkpoint is ``run_dir``'s with the actor, its target copy and
+    the exploration policy replaced by the fitted one. Nothing of ``run_dir`` changes.
+    ``trust`` as for :func:`~torchrl_rave.recipe.agent.load_agent`. Returns the fit's
+    first and last losses and the number of pairs."""
+    from torchrl_rave.recipe.trust import check_trusted
+
+    out = Path(out_dir)
+    if out.exists() and any(out.iterdir()):
+        raise FileExistsError(f"{out} exists and is not empty: distillation writes a new run")
+    source = RunCheckpoint(run_dir)
+    path = source.latest()
+    if path is None:
+        raise FileNotFoundError(f"no checkpoint under {source.root}")
+    cfg = saved_config(run_dir, defaults())
+    if not trust:
+        check_trusted(
+            cfg, set(), f"distill_run({str(run_dir)!r})", "Pass trust=True if you trust it."
+        )
+    if "ray" in cfg:
+        cfg.ray.address = None
+    env = make_env(cfg, torch.device("cpu"))
+    agent = make_agent(cfg, env)
+    rb = make_replay_buffer(cfg, torch.device("cpu"))
+    counters: dict = {}
+    logger: dict = {}
+    source.load(
+        path=path,
+        restore_rng=False,
+        counters=counters,
+        replay_buffer=rb,
+        logger=logger,
+        **agent.state_components(),
+    )
+    observations, actions = collect_pairs(env, agent.actor, frames, seed)
+    picked = observations[:, target]
+    low_t = picked.min(0).values if low is None else low
+    high_t = picked.max(0).values if high is None else high
+    torch.manual_seed(seed)
+    student = make_actor(cfg, env, agent.algorithm)[0]
+    generator = torch.Generator().manual_seed(seed)
+    losses = distill_actor(
+        student, observations, actions, target, low_t, high_t, steps=steps, generator=generator
+    )
+    with torch.no_grad():
+        for mine, fitted in zip(agent.actor.parameters(), student.parameters(), strict=True):
+            mine.copy_(fitted)
+        targets = getattr(agent.loss, "target_actor_network_params", None)
+        if targets is not None:
+            targets.update_(agent.loss.actor_network_params.detach())
+    env.close()
+    out.mkdir(parents=True, exist_ok=True)
+    RunCheckpoint(out).save(
+        int(counters["frames"]),
+        config=OmegaConf.to_container(cfg),
+        counters=counters,
+        replay_buffer=rb,
+        logger={},
+        **agent.state_components(),
+    )
+    return {"pairs": len(observations), "first_loss": losses[0], "last_loss": losses[-1]}
