@@ -111,7 +111,7 @@ def study_figures(
         figures.append((falling, "falling_rate", f"eval/falling_rate {band}",
                         f"{title}: share of evaluation episodes that fell", (-0.05, 1.05)))  # fmt: skip
     if q_bias:
-        figures.append((q_bias, "q_bias", f"eval/q_bias, predicted - Monte-Carlo {band}",
+        figures.append((q_bias, "q_bias", f"eval/q_bias, Q - MC {band}",
                         f"{title}: the critics' value bias", None))  # fmt: skip
     for series, suffix, ylabel, name, ylim in figures:
         path = prefix.with_name(f"{prefix.name}_{suffix}.png")
