@@ -24,6 +24,7 @@ import time
 from pathlib import Path
 
 import torch
+from provenance import provenance
 from update_throughput import recipe_config
 
 from torchrl_rave.recipe.agent import make_actor, make_env
@@ -96,7 +97,8 @@ def main(argv=None) -> dict:
     )
     for name, fps in rows.items():
         print(f"  {name:<12}{fps:9.0f}   x{fps / rows['direct']:.2f} vs direct")
-    Path(args.json).write_text(json.dumps({"env": args.env, "frames_per_s": rows}, indent=2))
+    record = {**provenance("collection_throughput.py", argv), "env": args.env, "frames_per_s": rows}
+    Path(args.json).write_text(json.dumps(record, indent=2))
     return rows
 
 

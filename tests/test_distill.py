@@ -3,6 +3,8 @@ noised target input is ignored, and the command on a real run, whose output trai
 
 from __future__ import annotations
 
+import json
+
 import distill
 import pytest
 import rave_mujoco
@@ -62,6 +64,7 @@ def test_the_command_writes_a_run_that_trains_on(tmp_path):
     result = distill.main([str(run), "--out", str(out), "--target", "0:1", "--frames", "300",
                            "--steps", "300"])  # fmt: skip
     assert result["pairs"] == 300 and result["last_loss"] < result["first_loss"]
+    assert json.loads((out / "distill.json").read_text())["target"] == [0, 1]
     assert sorted(p.name for p in (run / "checkpoints").iterdir()) == before  # source untouched
     # the distilled policy acts like the source on the states it was fitted on
     source, fitted = load_policy(run), load_policy(out)

@@ -11,6 +11,7 @@ checkpoint is the source's with the actor (and its target copy) replaced, so tha
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import torch
@@ -116,8 +117,9 @@ def distill_run(
     ``[low, high]``, or each target entry's range in the pairs), and writes ``out_dir``:
     a run directory whose checkpoint is ``run_dir``'s with the actor, its target copy and
     the exploration policy replaced by the fitted one. Nothing of ``run_dir`` changes.
-    ``trust`` as for :func:`~torchrl_rave.recipe.agent.load_agent`. Returns the fit's
-    first and last losses and the number of pairs."""
+    ``trust`` as for :func:`~torchrl_rave.recipe.agent.load_agent`. Returns, and writes
+    to ``out_dir/distill.json``, the source, the number of pairs, the target slice and the
+    fit's first and last losses."""
     from torchrl_rave.recipe.trust import check_trusted
 
     out = Path(out_dir)
@@ -173,4 +175,8 @@ def distill_run(
         logger={},
         **agent.state_components(),
     )
-    return {"pairs": len(observations), "first_loss": losses[0], "last_loss": losses[-1]}
+    result = {"source": str(run_dir), "frames": int(counters["frames"]), "pairs": len(observations),
+              "target": [target.start, target.stop], "steps": steps, "seed": seed,
+              "first_loss": losses[0], "last_loss": losses[-1]}  # fmt: skip
+    (out / "distill.json").write_text(json.dumps(result, indent=1) + "\n")
+    return result
