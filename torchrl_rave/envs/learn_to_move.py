@@ -67,6 +67,8 @@ import numpy as np
 import opensim
 from gymnasium import spaces
 
+from torchrl_rave.envs._opensim import set_excitations
+
 opensim.Logger.removeFileSink()  # no opensim.log in the installed package (learn_to_run.py)
 
 ENV_IDS = {"LearnToMove-v0": "3D", "LearnToMove2D-v0": "2D"}
@@ -429,16 +431,8 @@ class LearnToMoveEnv(gym.Env):
     def step(self, action):
         if self._manager is None:
             raise RuntimeError("call reset() before step()")
-        action = np.asarray(action, dtype=np.float64)
-        if action.shape != self.action_space.shape:
-            raise ValueError(
-                f"{self.model_name} Learn-to-Move takes {self.action_space.shape[0]} muscle "
-                f"excitations, got an action of shape {action.shape}"
-            )
-        if not np.isfinite(action).all():
-            raise ValueError(f"Learn-to-Move got a non-finite action: {action}")
-        for excitation, value in zip(self._excitations, np.clip(action, 0.0, 1.0), strict=True):
-            excitation.setValue(float(value))
+        who = f"{self.model_name} Learn-to-Move"
+        set_excitations(who, action, self._excitations, self.action_space.shape)
         self._steps += 1
         self._state = self._manager.integrate(STEP_SECONDS * self._steps)
         self._model.realizeDynamics(self._state)

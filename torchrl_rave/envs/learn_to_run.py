@@ -44,6 +44,8 @@ import numpy as np
 import opensim
 from gymnasium import spaces
 
+from torchrl_rave.envs._opensim import set_excitations
+
 # OpenSim opens its log file (opensim.log) in the directory of the first model it loads:
 # the installed package's assets. Its messages still reach the console.
 opensim.Logger.removeFileSink()
@@ -169,16 +171,7 @@ class LearnToRunEnv(gym.Env):
     def step(self, action):
         if self._manager is None:
             raise RuntimeError("call reset() before step()")
-        action = np.asarray(action, dtype=np.float64)
-        if action.shape != self.action_space.shape:
-            raise ValueError(
-                f"LearnToRun-v0 takes {self.action_space.shape[0]} muscle excitations, "
-                f"got an action of shape {action.shape}"
-            )
-        if not np.isfinite(action).all():
-            raise ValueError(f"LearnToRun-v0 got a non-finite action: {action}")
-        for excitation, value in zip(self._excitations, np.clip(action, 0.0, 1.0), strict=True):
-            excitation.setValue(float(value))
+        set_excitations(ENV_ID, action, self._excitations, self.action_space.shape)
         before = self.leg_x()
         self._steps += 1
         self._state = self._manager.integrate(STEP_SECONDS * self._steps)
