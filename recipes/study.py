@@ -97,6 +97,8 @@ def missing_cells(study, results: Path, out: Path) -> dict[Cell, Path]:
     cells = {}
     for seed in study.seeds:
         for task in tasks(study):
+            if task.cells_from:
+                continue  # another study runs them
             for algorithm in study.algorithms:
                 dest = result_dir(results, study, task.label, algorithm, seed)
                 if (dest / "cell.json").exists():

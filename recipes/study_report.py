@@ -56,8 +56,13 @@ def read_metric(run: Path, metric: str) -> tuple[np.ndarray, np.ndarray]:
         return read_scalar(run, EARLIER_NAMES[metric])
 
 
-def series(runs: list[Path], metric: str) -> tuple[np.ndarray, np.ndarray]:
+def series(
+    runs: list[Path], metric: str, until: int | None = None
+) -> tuple[np.ndarray, np.ndarray]:
+    """Per run, ``metric`` at the steps every run logged (up to ``until`` frames)."""
     data = [read_metric(r, metric) for r in runs]
+    if until is not None:
+        data = [(s[s <= until], v[s <= until]) for s, v in data]
     common = sorted(set.intersection(*(set(s.tolist()) for s, _ in data)))
     return np.array(common), np.stack([v[np.searchsorted(s, common)] for s, v in data])
 
@@ -75,10 +80,13 @@ def at_frame(runs: list[Path], metric: str, frame: int) -> np.ndarray | None:
     return values[:, hit[0]] if hit.size else None
 
 
-def tail_means(runs: list[Path], metric: str, after: int) -> np.ndarray | None:
-    """Per run: the mean of ``metric``'s values logged after ``after`` frames."""
+def tail_means(
+    runs: list[Path], metric: str, after: int, until: int | None = None
+) -> np.ndarray | None:
+    """Per run: the mean of ``metric``'s values logged after ``after`` frames (up to
+    ``until``)."""
     try:
-        steps, values = series(runs, metric)
+        steps, values = series(runs, metric, until)
     except FileNotFoundError:
         return None
     last = steps > after
@@ -120,6 +128,7 @@ def report(args) -> str:
     # one evaluation is 10 episodes of one policy snapshot; the evaluations of the last
     # quarter of the budget, averaged per seed, say more about where a run has got to
     tail_from = study.frames * 3 // 4
+    until = study.frames  # cells read from a longer study count up to this budget only
     lines = [
         f"Evaluation return ({study.name}): mean ± 95 % t-interval half-width over the seeds "
         "that finished; the last-quarter column first averages each seed's evaluations after "
@@ -140,7 +149,8 @@ def report(args) -> str:
         curves, diag, falling, q_bias = {}, {}, {}, {}
         for algorithm in study.algorithms:
             runs = group(study, args.results, task, algorithm)
-            minutes = [m / 60 for m in map(train_seconds, runs) if m is not None]
+            # a task read from another study's cells cost that study, not this one
+            minutes = [] if entry.cells_from else [m / 60 for m in map(train_seconds, runs) if m]
             if minutes:
                 cost.append(
                     f"| {task} | {algorithm} | {len(minutes)} | {min(minutes):.0f} | "
@@ -156,15 +166,15 @@ def report(args) -> str:
             if not runs:
                 lines.append(f"| {task} | {algorithm} | 0 |" + " n/a |" * (len(at) + 2) + ref)
                 continue
-            steps, values = series(runs, "eval/return")
+            steps, values = series(runs, "eval/return", until)
             if missing := [f for f in at if f not in steps]:
                 raise ValueError(
                     f"{study.name}: the {task} {algorithm} cells have no evaluation at "
                     f"{missing} frames (they evaluated at {steps[:3].tolist()}, ...); set "
                     "report_at in the study file to frames they evaluated at"
                 )
-            last = tail_means(runs, "eval/return", tail_from)
-            fall_steps, falls = series(runs, "eval/falling_rate")
+            last = tail_means(runs, "eval/return", tail_from, until)
+            fall_steps, falls = series(runs, "eval/falling_rate", until)
             falling[algorithm] = (fall_steps, falls.mean(0), falls.min(0), falls.max(0))
             episodes = [eval_episodes(r) for r in runs]
             fell = round(float(falls[:, -1] @ np.array(episodes)))
@@ -182,17 +192,20 @@ def report(args) -> str:
                     + " | ".join(cells_of(m["q_bias"] + m["q_rmse"]) + cells_of(m["q_corr"], 2))
                     + " |"
                 )
-                s, v = series(runs, "eval/q_bias")
+                s, v = series(runs, "eval/q_bias", until)
                 q_bias[label] = (s, v.mean(0), v.min(0), v.max(0))
             if algorithm == "rave":
-                diag = {k: series(runs, f"train/{k}") for k in RAVE_DIAGNOSTICS}
-            weights = [tail_means(runs, f"train/horizon_weight_h{h}", tail_from) for h in range(4)]
+                diag = {k: series(runs, f"train/{k}", until) for k in RAVE_DIAGNOSTICS}
+            weights = [
+                tail_means(runs, f"train/horizon_weight_h{h}", tail_from, until) for h in range(4)
+            ]
             if weights[0] is not None:
-                alpha = tail_means(runs, "train/rave_alpha", tail_from)
+                alpha = tail_means(runs, "train/rave_alpha", tail_from, until)
                 v0, v3 = (
-                    tail_means(runs, f"train/candidate_variance_h{h}", tail_from) for h in (0, 3)
+                    tail_means(runs, f"train/candidate_variance_h{h}", tail_from, until)
+                    for h in (0, 3)
                 )
-                error = tail_means(runs, "train/wm_transition_mse", tail_from)
+                error = tail_means(runs, "train/wm_transition_mse", tail_from, until)
                 ratio = None if v0 is None or v3 is None else v3 / v0
                 diagnostics.append(
                     f"| {task} | {algorithm} | {len(runs)} | "

@@ -340,6 +340,32 @@ def test_report_at_chooses_the_table_frames_and_must_be_evaluation_frames(tmp_pa
             study.load_study(write_study(tmp_path, report_at=bad))
 
 
+def test_a_task_can_read_another_studys_cells_up_to_its_own_budget(tmp_path):
+    """``cells_from``: the twin's cells are the longer study's; this study never runs
+    them, and reads them to its own 200 frames (the 300-frame evaluation and the costs
+    of the longer run are not this study's)."""
+    results, figures = tmp_path / "results", tmp_path / "figures"
+    for seed, (a, b, c) in enumerate([(1, 2, 50), (3, 4, 70)]):
+        cell = results / "long" / "Twin" / "ddpg" / f"seed{seed}"
+        for metric, rows in {"eval/return": [(100, a), (200, b), (300, c)],
+                             "eval/falling_rate": [(100, 1), (200, 1), (300, 0)],
+                             "time/update_s": [(100, 60), (200, 60), (300, 60)]}.items():  # fmt: skip
+            csv = cell / "ddpg" / "scalars" / f"{metric}.csv"
+            csv.parent.mkdir(parents=True, exist_ok=True)
+            csv.write_text("".join(f"{step},{value}\n" for step, value in rows))
+        (cell / "cell.json").write_text(json.dumps({"config": {"eval": {"episodes": 10}}}))
+    config = write_study(tmp_path, algorithms=["ddpg"],
+                         tasks=[{"label": "Twin", "env": "Hopper-v5", "cells_from": "long"}])  # fmt: skip
+    loaded = study.load_study(config)
+    assert study.missing_cells(loaded, results, tmp_path / "runs") == {}  # nothing to run
+    study.main(["report", "--config", str(config), "--results", str(results),
+                "--figures", str(figures)])  # fmt: skip
+    table = (figures / "tiny.md").read_text()
+    # at 100: [1, 3]; at 200: [2, 4]; after 150 up to 200: [2, 4]; falls at 200: all
+    assert "| Twin | ddpg | 2 | 2 ± 13 | 3 ± 13 | 3 ± 13 | 1.00 [0.84, 1.00] |" in table
+    assert "What the finished cells cost" not in table  # the longer study paid for them
+
+
 @pytest.mark.parametrize(
     "name", sorted(p.stem for p in (Path(study.__file__).parent / "study").glob("*.yaml"))
 )
@@ -350,7 +376,8 @@ def test_every_committed_study_makes_valid_cells(name, tmp_path):
 
     loaded = study.load_study(Path(study.__file__).parent / "study" / f"{name}.yaml")
     cells = study.missing_cells(loaded, tmp_path / "results", tmp_path / "runs")
-    expected = len(study.tasks(loaded)) * len(loaded.algorithms) * len(loaded.seeds)
+    own = [t for t in study.tasks(loaded) if not t.cells_from]  # a twin's cells run elsewhere
+    expected = len(own) * len(loaded.algorithms) * len(loaded.seeds)
     assert len(cells) == expected
     for cell in cells:
         cfg = make_cfg(*cell.overrides, f"collector.total_frames={cell.frames}")

@@ -16,24 +16,29 @@ __all__ = ["Task", "load_study", "report_frames", "result_dir", "tasks"]
 class Task:
     """One task of a study: ``label`` names its results directory, ``env`` is the
     recipe's ``env.name``, ``overrides`` go to its cells only (e.g. ``env.action_noise``),
-    and ``reference`` says whether published numbers for ``env`` apply to it."""
+    ``reference`` says whether published numbers for ``env`` apply to it, and
+    ``cells_from`` names another study whose cells of the same label this one reads (up
+    to its own budget) instead of running its own: a twin shared by two studies."""
 
     label: str
     env: str
     overrides: tuple[str, ...] = ()
     reference: bool = True
+    cells_from: str | None = None
 
 
 def tasks(study: DictConfig) -> list[Task]:
     """A study's tasks: an entry is an env id, or a mapping with ``label``, ``env`` and
-    optional ``overrides`` and ``reference`` (which defaults to no overrides)."""
+    optional ``overrides``, ``reference`` (which defaults to no overrides) and
+    ``cells_from``."""
     out = []
     for entry in study.tasks:
         if isinstance(entry, str):
             out.append(Task(entry, entry))
             continue
         extra = tuple(entry.get("overrides") or ())
-        out.append(Task(entry.label, entry.env, extra, bool(entry.get("reference", not extra))))
+        reference = bool(entry.get("reference", not extra))
+        out.append(Task(entry.label, entry.env, extra, reference, entry.get("cells_from")))
     return out
 
 
@@ -70,5 +75,7 @@ def report_frames(study: DictConfig) -> list[int]:
 
 
 def result_dir(results: Path, study: DictConfig, task: str, algorithm: str, seed: int) -> Path:
-    """Where the finished cell of (task label, algorithm, seed) is kept."""
-    return results / study.name / task / algorithm / f"seed{seed}"
+    """Where the finished cell of (task label, algorithm, seed) is kept: under the study's
+    name, or under the one its task's ``cells_from`` names."""
+    source = next((t.cells_from for t in tasks(study) if t.label == task), None)
+    return results / (source or study.name) / task / algorithm / f"seed{seed}"
