@@ -20,7 +20,7 @@ tomllib = pytest.importorskip("tomllib")  # Python 3.11+
 ROOT = Path(__file__).resolve().parents[1]
 PACKAGE = ROOT / "torchrl_rave"
 # imported only through envs.families' on-demand loader, never by the package's own import
-ON_DEMAND = {"envs/learn_to_run.py"}
+ON_DEMAND = {"envs/learn_to_run.py", "envs/learn_to_move.py"}
 # needed at run time without being imported by name (gymnasium's MuJoCo envs load it)
 RUNTIME_ONLY = {"mujoco"}
 
