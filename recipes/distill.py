@@ -15,31 +15,15 @@ from __future__ import annotations
 
 import argparse
 
-import torch
-
-from torchrl_rave.recipe.agent import make_env
-from torchrl_rave.recipe.checkpoint import saved_config
 from torchrl_rave.recipe.distill import distill_run
-from torchrl_rave.recipe.schema import defaults
 
 
-def target_slice(text: str, run_dir: str, trust: bool) -> slice:
-    """``START:STOP``, or with ``auto`` the env's ``target_observation``."""
-    if text != "auto":
-        start, _, stop = text.partition(":")
-        return slice(int(start) if start else None, int(stop) if stop else None)
-    cfg = saved_config(run_dir, defaults())
-    if not trust and ":" in str(cfg.env.name):
-        raise SystemExit(f"{run_dir}: env.name={cfg.env.name!r} imports a module; pass --trust")
-    env = make_env(cfg, torch.device("cpu"))
-    try:
-        return env.base_env._env.get_wrapper_attr("target_observation")
-    except AttributeError:
-        raise SystemExit(
-            f"{cfg.env.name} names no target part of its observation: pass --target START:STOP"
-        ) from None
-    finally:
-        env.close()
+def target_slice(text: str) -> slice | None:
+    """``START:STOP``, or ``None`` for ``auto`` (the env's own ``target_observation``)."""
+    if text == "auto":
+        return None
+    start, _, stop = text.partition(":")
+    return slice(int(start) if start else None, int(stop) if stop else None)
 
 
 def main(argv=None) -> dict:
@@ -58,13 +42,14 @@ def main(argv=None) -> dict:
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--trust", action="store_true", help="trust the run directory's config")
     args = parser.parse_args(argv)
-    target = target_slice(args.target, args.run, args.trust)
+    target = target_slice(args.target)
     result = distill_run(
         args.run, args.out, target, frames=args.frames, low=args.low, high=args.high,
         steps=args.steps, seed=args.seed, trust=args.trust,
     )  # fmt: skip
     print(
-        f"distilled {args.run} into {args.out}: {result['pairs']} pairs, target {target}, "
+        f"distilled {args.run} into {args.out}: {result['pairs']} pairs, target "
+        f"{result['target'][0]}:{result['target'][1]}, "
         f"loss {result['first_loss']:.4g} -> {result['last_loss']:.4g}; train on with "
         f"resume={args.out}"
     )

@@ -72,6 +72,10 @@ def test_the_command_writes_a_run_that_trains_on(tmp_path):
     obs[:, 0] = 0.0
     a, b = act(source, obs), act(fitted, obs)
     assert (a - b).abs().mean() < 0.2 * a.abs().mean() + 0.02
+    # InvertedPendulum names no target part of its observation: --target is needed
+    with pytest.raises(ValueError, match="names no target part"):
+        distill.main([str(run), "--out", str(tmp_path / "auto"), "--frames", "10"])
+    assert not (tmp_path / "auto").exists()
     with pytest.raises(FileExistsError, match="not empty"):
         distill.main([str(run), "--out", str(out), "--target", "0:1"])
     # training goes on from it

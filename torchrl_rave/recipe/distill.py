@@ -103,7 +103,7 @@ def distill_actor(
 def distill_run(
     run_dir: str | Path,
     out_dir: str | Path,
-    target: slice,
+    target: slice | None = None,
     *,
     frames: int = 10_000,
     low: float | None = None,
@@ -113,7 +113,8 @@ def distill_run(
     trust: bool = False,
 ) -> dict:
     """Collects ``frames`` pairs from ``run_dir``'s latest policy, fits a freshly built
-    actor of the same config on them (:func:`distill_actor`; the target range is
+    actor of the same config on them (:func:`distill_actor`; ``target`` is the slice of
+    the observation to noise, by default the env's ``target_observation``; its range is
     ``[low, high]``, or each target entry's range in the pairs), and writes ``out_dir``:
     a run directory whose checkpoint is ``run_dir``'s with the actor, its target copy and
     the exploration policy replaced by the fitted one. Nothing of ``run_dir`` changes.
@@ -149,6 +150,14 @@ def distill_run(
         logger=logger,
         **agent.state_components(),
     )
+    if target is None:  # the env's own target part (LearnToMove-v0's target field)
+        try:
+            target = env.base_env._env.get_wrapper_attr("target_observation")
+        except AttributeError:
+            env.close()
+            raise ValueError(
+                f"{cfg.env.name} names no target part of its observation: pass a target slice"
+            ) from None
     observations, actions = collect_pairs(env, agent.actor, frames, seed)
     picked = observations[:, target]
     low_t = picked.min(0).values if low is None else low
