@@ -1,0 +1,231 @@
+"""A seed group's update against each seed's single-learner update, and its isolation."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+from tensordict import TensorDict
+from test_recipe import make_cfg
+from torchrl.data import Bounded, Composite, Unbounded
+
+import torchrl_rave.modules.world_model as world_model_module
+from torchrl_rave.recipe.agent import make_agent
+from torchrl_rave.recipe.update import agent_update
+from torchrl_rave.trainers.seed_group import SeedGroup
+
+OBS, ACT, B = 5, 2, 16
+SMALL = [
+    "network.actor_cells=16",
+    "network.critic_cells=16",
+    "network.num_layers=3",
+    "world_model.num_models=3",
+    "world_model.transition_cells=16",
+    "world_model.reward_cells=16",
+    "world_model.termination_cells=16",
+    "optim.tau=0.5",  # targets move visibly: a wrong soft update shows
+]
+ALGORITHMS = ["ddpg", "mve", "steve", "rave", "rave_constant"]
+
+
+class Spec:
+    """The parts of an env that make_agent reads."""
+
+    observation_spec = Composite(observation=Unbounded((OBS,)))
+    action_spec = Bounded(-1.0, 1.0, (ACT,))
+
+
+def learner(algorithm: str, seed: int):
+    cfg = make_cfg(f"algorithm={algorithm}", *SMALL)
+    torch.manual_seed(seed)
+    agent = make_agent(cfg, Spec())
+    if agent.world_model is not None:
+        g = torch.Generator().manual_seed(100 + seed)
+        agent.world_model.update_normalizers(
+            torch.randn(64, OBS, generator=g) * (1 + seed),
+            torch.rand(64, ACT, generator=g) * 2 - 1,
+            torch.randn(64, OBS, generator=g),
+            torch.randn(64, generator=g) + seed,
+        )
+    return cfg, agent
+
+
+def make_group(agents, cfg, **kwargs):
+    model_based = agents[0].world_model is not None
+    return SeedGroup(
+        [a.loss for a in agents],
+        lr_actor=cfg.optim.lr_actor,
+        lr_critic=cfg.optim.lr_critic,
+        tau=cfg.optim.tau,
+        world_model_losses=[a.world_model_trainer.loss for a in agents] if model_based else None,
+        lr_world_model=cfg.world_model.lr if model_based else None,
+        **kwargs,
+    )
+
+
+def batch(S: int, seed: int = 0) -> TensorDict:
+    g = torch.Generator().manual_seed(seed)
+    terminated = torch.rand(S, B, 1, generator=g) < 0.2
+    return TensorDict(
+        {
+            "observation": torch.randn(S, B, OBS, generator=g),
+            "action": torch.rand(S, B, ACT, generator=g) * 2 - 1,
+            ("next", "observation"): torch.randn(S, B, OBS, generator=g),
+            ("next", "reward"): torch.randn(S, B, 1, generator=g),
+            ("next", "done"): terminated.clone(),
+            ("next", "terminated"): terminated,
+        },
+        [S, B],
+    )
+
+
+class Recorder:
+    """The group's random draws, kept so that each single learner can replay its slice."""
+
+    def __init__(self) -> None:
+        self.noise: list[torch.Tensor] = []
+        self.indices: list[torch.Tensor] = []
+
+    def draw(self, mean, logvar, sample):
+        if not sample:
+            return mean
+        eps = torch.randn_like(mean)
+        self.noise.append(eps)
+        return mean + eps * (0.5 * logvar).exp()
+
+    def bootstrap(self, B_, S):
+        idx = torch.randint(B_, (3, S, B_))
+        self.indices.append(idx)
+        return idx
+
+
+def replay(monkeypatch, agent, recorder: Recorder, s: int) -> None:
+    """Makes ``agent``'s world model draw seed ``s``'s slice of the group's draws."""
+    noise = iter([eps[:, s] for eps in recorder.noise])
+
+    def draw(mean, logvar, sample):
+        if not sample:
+            return mean
+        return mean + next(noise).reshape(mean.shape) * (0.5 * logvar).exp()
+
+    monkeypatch.setattr(world_model_module, "_draw", draw)
+    if agent.world_model_trainer is not None:
+        idx = iter([i[:, s] for i in recorder.indices])
+        monkeypatch.setattr(agent.world_model_trainer.loss, "bootstrap_indices",
+                            lambda batch_size, device=None: next(idx))  # fmt: skip
+
+
+def grads(leaves):
+    return [None if p.grad is None else p.grad.clone() for p in leaves]
+
+
+def close(a, b, what):
+    torch.testing.assert_close(a, b, rtol=2e-5, atol=2e-6, msg=lambda m: f"{what}: {m}")
+
+
+@pytest.mark.parametrize("algorithm", ALGORITHMS)
+@pytest.mark.parametrize("S", [1, 2, 3])
+def test_each_seed_is_its_single_update(algorithm, S, monkeypatch):
+    """Two steps (world model, then agent) of a group of S equal each seed's own steps on
+    its own rows: losses, targets, diagnostics, gradients and parameters after Adam."""
+    cfg, _ = learner(algorithm, 0)
+    singles = [learner(algorithm, s)[1] for s in range(S)]
+    grouped = [learner(algorithm, s)[1] for s in range(S)]
+    rec = Recorder()
+    group = make_group(grouped, cfg, draw=rec.draw, bootstrap_indices=rec.bootstrap)
+    data = [batch(S, seed=i) for i in range(2)]
+    outs, wm_outs, group_grads = [], [], []
+    for d in data:
+        if group.world_model is not None:
+            wm_outs.append(group.update_world_model(d))
+        outs.append(group.update(d))
+        group_grads.append(grads(group.actor_leaves + group.critic_leaves))
+    for s, agent in enumerate(singles):
+        replay(monkeypatch, agent, rec, s)
+        loss = agent.loss
+        for i, d in enumerate(data):
+            if agent.world_model_trainer is not None:
+                wm = agent.world_model_trainer.update(d[s])
+                for key in ("loss_transition", "loss_reward", "loss_termination",
+                            "transition_nll", "reward_mse", "termination_accuracy"):  # fmt: skip
+                    close(wm[key], wm_outs[i][key][s], f"seed {s} step {i} {key}")
+            out = agent_update(loss, agent.optimizers, agent.target_updater, d[s].clone())
+            got = outs[i][s]
+            for key in ("loss_value", "loss_actor", "target_value", "pred_value",
+                        "state_action_value_actor"):  # fmt: skip
+                close(got[key], out[key], f"seed {s} step {i} {key}")
+            if group.expanding:
+                diag = loss.value_estimator.diagnostics
+                for key in diag.keys():  # noqa: SIM118 (a TensorDict)
+                    close(got[key], diag[key], f"seed {s} step {i} {key}")
+            # gradients: the group's leaves hold seed s at dim 0 (actor) or 1 (critics)
+            leaves = [*loss.actor_network_params.values(True, True),
+                      *loss.value_network_params.values(True, True)]  # fmt: skip
+            single = grads([p for p in leaves if p.requires_grad])  # not the action bounds
+            n_actor = len(group.actor_leaves)
+            for j, (g_single, g_group) in enumerate(zip(single, group_grads[i], strict=True)):
+                close(g_group.select(0 if j < n_actor else 1, s), g_single, f"grad {j}")
+        # parameters after both steps (targets, world model and normalisers too): the
+        # grouped learner's leaves are views of the group's tensors
+        mine, theirs = grouped[s].state_components(), agent.state_components()
+        for name in ("loss", "world_model"):
+            if name not in theirs:
+                continue
+            a, b = theirs[name].state_dict(), mine[name].state_dict()
+            for key in a:
+                close(b[key], a[key], f"seed {s} {name} {key}")
+
+
+@pytest.mark.parametrize("algorithm", ["ddpg", "rave"])
+def test_no_seed_reads_another_seeds_data(algorithm):
+    """Changing seed 1's rewards leaves seeds 0 and 2 bit-identical."""
+    runs = []
+    for scale in (1.0, 1000.0):
+        cfg, _ = learner(algorithm, 0)
+        agents = [learner(algorithm, s)[1] for s in range(3)]
+        group = make_group(agents, cfg)
+        torch.manual_seed(7)
+        outs = []
+        for i in range(3):
+            d = batch(3, seed=i)
+            d["next", "reward"][1] *= scale
+            if group.world_model is not None:
+                outs.append(group.update_world_model(d))
+            outs.append(group.update(d))
+        runs.append((outs, [p.detach().clone() for p in group.actor_leaves + group.critic_leaves]))
+    (outs_a, params_a), (outs_b, params_b) = runs
+    for a, b in zip(outs_a, outs_b, strict=True):
+        for key in a.keys():  # noqa: SIM118 (a TensorDict)
+            assert torch.equal(a[key][0], b[key][0]) and torch.equal(a[key][2], b[key][2]), key
+            if key in ("loss_value", "loss_reward"):  # seed 1's own numbers did change
+                assert not torch.equal(a[key][1], b[key][1]), key
+    n_actor = len(params_a) // 2
+    for j, (a, b) in enumerate(zip(params_a, params_b, strict=True)):
+        dim = 0 if j < n_actor else 1
+        for s in (0, 2):
+            assert torch.equal(a.select(dim, s), b.select(dim, s))
+
+
+def test_learners_read_the_group_weights():
+    """After an update each learner's own policy acts with the group's new weights."""
+    cfg, _ = learner("ddpg", 0)
+    agents = [learner("ddpg", s)[1] for s in range(2)]
+    group = make_group(agents, cfg)
+    obs = torch.randn(2, 4, OBS)
+    before = [agents[s].actor(TensorDict(observation=obs[s], batch_size=[4]))["action"]
+              for s in range(2)]  # fmt: skip
+    group.update(batch(2))
+    with torch.no_grad():
+        grouped = group._policy(group.actor, obs)
+    for s in range(2):
+        after = agents[s].actor(TensorDict(observation=obs[s], batch_size=[4]))["action"]
+        assert not torch.equal(after, before[s])
+        close(after, grouped[s], f"seed {s}")
+
+
+def test_refuses_mixed_learners():
+    cfg, a = learner("steve", 0)
+    _, b = learner("rave", 1)
+    with pytest.raises(ValueError, match="value estimator"):
+        make_group([a, b], cfg)
+    with pytest.raises(ValueError, match=r"batches of shape \[1, B\]"):
+        make_group([learner("ddpg", 0)[1]], cfg).update(batch(2))

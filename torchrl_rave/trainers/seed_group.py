@@ -1,0 +1,644 @@
+"""Many independent learners updated as one: the seed as a batch dimension of every call.
+
+:class:`SeedGroup` takes ``S`` fully built learners of the DDPG family (``ddpg``, ``mve``,
+``steve``, ``rave`` and ``rave_constant``: an :class:`~torchrl_rave.objectives.EnsembleDDPGLoss`
+with its target estimator and, for the model-based ones, a
+:class:`~torchrl_rave.objectives.WorldModelEnsembleLoss`) and moves every parameter, target
+parameter and normaliser statistic of all of them into one tensor per leaf, with the seed as
+a dimension of its own:
+
+==================  ================================  ===================================
+network             one learner's leaf                the group's leaf
+==================  ================================  ===================================
+actor               ``[out, in]``                     ``[S, out, in]``
+K critics           ``[K, out, in]``                  ``[K, S, out, in]``
+world model         ``[N, in, out]``                  ``[N, S, in, out]``
+normalisers         ``[F]``                           ``[S, F]``
+==================  ================================  ===================================
+
+Each learner's own leaves become views of its slice, so its modules (the policy a collector
+runs, the evaluation actor, ``state_dict`` and checkpoints) keep working on the group's
+current weights, unchanged. An update then evaluates each network once for all seeds: the
+seed is the last batch dimension of the weights and the dimension before the rows of the
+inputs (``[*members, S, rows, features]``), so each layer is one batched matmul in which
+seed ``s``'s rows only meet seed ``s``'s weights, and the number of kernel calls does not
+depend on ``S``. Losses are summed over seeds after their per-seed reductions, so one
+backward gives each seed exactly its own gradient, and Adam and the soft target update act
+element-wise.
+
+The update's random draws (the world model's bootstrap indices, RAVE's sampled rollouts)
+are one call each for the whole group, from the global generator in the order a single
+learner draws them: a group of one draws exactly what the single learner draws. Seeds of
+a larger group get independent draws, but not the ones they would get alone.
+
+This is the hand-folded form of ``torch.func.vmap`` over the update: ``vmap`` over TorchRL's
+loss does not carry gradients through ``TensorDictParams`` and was slower than separate
+updates on this workload (``benchmarks/README.md``, the seed-group section).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+
+import torch
+from tensordict import TensorDict, TensorDictBase
+from torch.nn import functional as F
+
+from torchrl_rave.modules.ensemble import EnsembleLinear, EnsembleMLP, inplace_activation
+from torchrl_rave.modules.tensor_call import TensorCall, _leaf
+from torchrl_rave.objectives import functional as VF
+from torchrl_rave.objectives.ensemble_ddpg import EnsembleDDPGLoss
+from torchrl_rave.objectives.value_expansion import ValueExpansionEstimator
+from torchrl_rave.objectives.world_model_loss import WorldModelEnsembleLoss, gaussian_nll
+
+__all__ = ["SeedGroup"]
+
+Tensor = torch.Tensor
+
+
+def _fuse(leaves: Sequence[Tensor], dim: int, parameter: bool) -> Tensor:
+    """One tensor holding ``leaves`` stacked along ``dim``; each leaf's storage is then
+    replaced by a view of its slice (``leaf.data = group.select(dim, s)``), so whatever
+    holds the leaf reads (and writes) the group's numbers."""
+    group = torch.stack([leaf.detach() for leaf in leaves], dim).contiguous()
+    if parameter:
+        group = torch.nn.Parameter(group)
+    for s, leaf in enumerate(leaves):
+        leaf.data = group.detach().select(dim, s)
+    return group
+
+
+def _same(name: str, values: Sequence) -> object:
+    first = values[0]
+    for v in values[1:]:
+        if v != first:
+            raise ValueError(f"the learners of a seed group must share {name}; got {list(values)}")
+    return first
+
+
+class _Linear:
+    """One grouped affine layer and the activation after it (``None``: none)."""
+
+    __slots__ = ("weight", "bias", "activation", "output_major")
+
+    def __init__(self, weight, bias, activation, output_major: bool) -> None:
+        self.weight, self.bias, self.activation = weight, bias, activation
+        # nn.Linear's [out, in] layout (True) or EnsembleLinear's [in, out]
+        self.output_major = output_major
+
+    def __call__(self, x: Tensor, detach: bool = False) -> Tensor:
+        w, b = self.weight, self.bias
+        if detach:
+            w, b = w.detach(), None if b is None else b.detach()
+        if self.output_major:  # [*E, S, out, in] and [*E, S, out]
+            y = torch.matmul(x, w.mT)
+            y = y if b is None else y + b.unsqueeze(-2)
+        else:  # [*E, S, in, out] and [*E, S, 1, out]
+            if w.shape[-1] < w.shape[-2]:  # as EnsembleLinear._matmul_weight
+                w = w.mT.clone(memory_format=torch.contiguous_format).mT
+            if x.dim() == w.dim():  # per member: one baddbmm over members x seeds
+                lead = w.shape[:-2]
+                y = torch.baddbmm(
+                    b.reshape(-1, *b.shape[-2:]),
+                    x.reshape(-1, *x.shape[-2:]),
+                    w.reshape(-1, *w.shape[-2:]),
+                ).reshape(*lead, x.shape[-2], w.shape[-1])
+            else:
+                y = torch.matmul(x, w) + b
+        if self.activation is not None:
+            inplace = inplace_activation(self.activation)
+            y = self.activation(y) if inplace is None else inplace(y)
+        return y
+
+
+def _run(layers: list[_Linear], x: Tensor, detach: bool = False) -> Tensor:
+    for layer in layers:
+        x = layer(x, detach)
+    return x
+
+
+def _mlp_layers(plan: TensorCall, params: Sequence[TensorDictBase], dim: int) -> tuple:
+    """The grouped linear layers of a planned TorchRL MLP (one ``"mlp"`` step, optionally
+    followed by a ``"tanh"`` step) from each learner's ``params``; returns ``(layers,
+    leaves, in_keys, tanh)`` with ``leaves`` the fused tensors in order."""
+    kinds = [step[0] for step in plan.steps]
+    if kinds not in (["mlp"], ["mlp", "tanh"]):
+        raise ValueError(f"a seed group runs plain MLP networks, got the planned steps {kinds}")
+    _, in_keys, _, entries = plan.steps[0]
+    layers, leaves = [], []
+    for is_linear, layer, *keys in entries:
+        if not is_linear:
+            if not layers or layers[-1].activation is not None:
+                raise ValueError("a seed group needs one activation after each linear layer")
+            layers[-1].activation = layer
+            continue
+        fused = []
+        for key in keys:
+            fused.append(
+                None if key is None
+                else _fuse([_leaf(p, *key) for p in params], dim, isinstance(
+                    _leaf(params[0], *key), torch.nn.Parameter))
+            )  # fmt: skip
+        layers.append(_Linear(fused[0], fused[1], None, output_major=True))
+        leaves += [t for t in fused if t is not None]
+    tanh = None
+    if len(plan.steps) == 2:
+        _, _, _, (module, _, low, high), rescale, clamp = plan.steps[1]
+        tanh = (getattr(module, low), getattr(module, high), rescale, clamp)
+    return layers, leaves, list(in_keys), tanh
+
+
+class _GroupedNormalizer:
+    """A :class:`~torchrl_rave.modules.normalizer.RunningNormalizer` per seed, read from
+    fused ``[S, F]`` statistics (updates go through each learner's own normaliser, whose
+    buffers are views of these)."""
+
+    def __init__(self, normalizers) -> None:
+        self.min_std = _same("normaliser min_std", [n.min_std for n in normalizers])
+        self.mean = _fuse([n.mean for n in normalizers], 0, False)
+        self.var = _fuse([n.var for n in normalizers], 0, False)
+        self.count = _fuse([n.count for n in normalizers], 0, False)
+
+    def _stats(self):
+        # [S, 1, F]: broadcasts against [*members, S, rows, F]
+        return self.mean.unsqueeze(-2), self.var.sqrt().clamp_min(self.min_std).unsqueeze(-2)
+
+    def normalize(self, x: Tensor) -> Tensor:
+        mean, std = self._stats()
+        return (x - mean) / std
+
+    def denormalize(self, x: Tensor) -> Tensor:
+        mean, std = self._stats()
+        return x * std + mean
+
+
+class _GroupedWorldModel:
+    """The world models of all seeds as one ``[N, S]`` ensemble; the methods mirror
+    :class:`~torchrl_rave.modules.WorldModelEnsemble`'s with inputs ``[S, R, F]`` (shared
+    by the members) or ``[N, S, R, F]`` (per member) and outputs ``[N, S, R, F']``."""
+
+    def __init__(self, models, draw: Callable[[Tensor, Tensor, bool], Tensor]) -> None:
+        self.num_models = _same("world_model.num_models", [m.num_models for m in models])
+        self.draw = draw
+        self.leaves: list[Tensor] = []
+        self.transition = self._gaussian([m.transition for m in models])
+        self.reward_model = self._gaussian([m.reward_model for m in models])
+        self.termination = self._mlp([m.termination for m in models])
+        self.obs_norm = _GroupedNormalizer([m.obs_norm for m in models])
+        self.action_norm = _GroupedNormalizer([m.action_norm for m in models])
+        self.delta_norm = _GroupedNormalizer([m.delta_norm for m in models])
+        self.reward_norm = _GroupedNormalizer([m.reward_norm for m in models])
+
+    def _linear(self, layers: Sequence[EnsembleLinear], activation) -> _Linear:
+        w = _fuse([layer.weight for layer in layers], 1, True)
+        b = _fuse([layer.bias for layer in layers], 1, True)
+        self.leaves += [w, b]
+        return _Linear(w, b, activation, output_major=False)
+
+    def _mlp(self, mlps: Sequence[EnsembleMLP], last_activation: bool = False) -> list[_Linear]:
+        depth = _same("world-model layer counts", [len(m.layers) for m in mlps])
+        activation = mlps[0].activation
+        return [
+            self._linear([m.layers[i] for m in mlps],
+                         activation if i < depth - 1 or last_activation else None)
+            for i in range(depth)
+        ]  # fmt: skip
+
+    def _gaussian(self, heads) -> dict:
+        out = {
+            "trunk": self._mlp([h.trunk for h in heads], last_activation=True),
+            "mean": self._linear([h.mean_head for h in heads], None),
+            "logvar": self._linear([h.logvar_head for h in heads], None),
+            "max": _fuse([h.max_logvar for h in heads], 1, True),
+            "min": _fuse([h.min_logvar for h in heads], 1, True),
+        }
+        self.leaves += [out["max"], out["min"]]
+        return out
+
+    @staticmethod
+    def _gaussian_forward(head: dict, x: Tensor) -> tuple[Tensor, Tensor]:
+        h = _run(head["trunk"], x)
+        mean = head["mean"](h)
+        raw = head["logvar"](h)
+        top, bottom = head["max"], head["min"]
+        logvar = top - F.softplus(top - raw)
+        return mean, bottom + F.softplus(logvar - bottom)
+
+    @staticmethod
+    def bound_penalty(head: dict) -> Tensor:
+        """Each seed's ``sum(max_logvar) - sum(min_logvar)``, ``[S]``."""
+        return head["max"].sum((0, 2, 3)) - head["min"].sum((0, 2, 3))
+
+    def _sa(self, obs: Tensor, action: Tensor) -> Tensor:
+        return torch.cat([self.obs_norm.normalize(obs), self.action_norm.normalize(action)], -1)
+
+    def predict_transition(self, obs, action):
+        return self._gaussian_forward(self.transition, self._sa(obs, action))
+
+    def step(self, obs, action, sample: bool) -> Tensor:
+        delta = self.draw(*self.predict_transition(obs, action), sample)
+        return obs + self.delta_norm.denormalize(delta)
+
+    def predict_reward(self, obs, action, next_obs):
+        x = torch.cat([self._sa(obs, action), self.obs_norm.normalize(next_obs)], -1)
+        return self._gaussian_forward(self.reward_model, x)
+
+    def reward(self, obs, action, next_obs, sample: bool) -> Tensor:
+        return self.reward_norm.denormalize(
+            self.draw(*self.predict_reward(obs, action, next_obs), sample)
+        )
+
+    def termination_logits(self, next_obs: Tensor) -> Tensor:
+        return _run(self.termination, self.obs_norm.normalize(next_obs))
+
+    def target_delta(self, obs, next_obs):
+        return self.delta_norm.normalize(next_obs - obs)
+
+
+def _draw(mean: Tensor, logvar: Tensor, sample: bool) -> Tensor:
+    """The world model's draw (``modules.world_model._draw``): one ``randn`` for the group."""
+    if not sample:
+        return mean
+    return mean + torch.randn_like(mean) * (0.5 * logvar).exp()
+
+
+class SeedGroup:
+    """``S`` independent DDPG-family learners, each network call batched across seeds.
+
+    Args:
+        losses (Sequence[EnsembleDDPGLoss]): one loss per seed, with the same networks'
+            shapes, the same value estimator type and hyperparameters (TD(0), or MVE, STEVE
+            or RAVE wired with ``for_loss``), and planned fast calls (TorchRL MLP actors and
+            critics, the actor ending in a ``TanhModule``).
+
+    Keyword Args:
+        lr_actor (float): the actor's Adam learning rate.
+        lr_critic (float): the critics' Adam learning rate.
+        tau (float): the soft target update's ``tau`` (targets move ``tau`` of the way).
+        world_model_losses (Sequence[WorldModelEnsembleLoss], optional): one per seed, for
+            a value-expansion estimator (each on its loss's world model).
+        lr_world_model (float, optional): the world models' Adam learning rate.
+        draw (Callable, optional): ``(mean, logvar, sample) -> tensor``, the world model's
+            Gaussian draw (tests pass one that replays known noise). Defaults to one
+            ``randn`` per call for the whole group.
+        bootstrap_indices (Callable, optional): ``(B, S) -> [N, S, B]`` resample indices of
+            the world-model step. Defaults to one ``randint`` for the group.
+
+    After construction every learner's parameters, target parameters and world-model
+    statistics are views of the group's tensors (see the module's docstring); train with
+    :meth:`update_world_model` and :meth:`update` only, not with the learners' own
+    optimisers.
+
+    Examples:
+        >>> from torchrl.data import Bounded
+        >>> from torchrl.modules import MLP, Actor, TanhModule, ValueOperator
+        >>> from tensordict.nn import TensorDictModule, TensorDictSequential
+        >>> spec = Bounded(-1.0, 1.0, shape=(2,))
+        >>> def learner(seed):
+        ...     torch.manual_seed(seed)
+        ...     actor = TensorDictSequential(
+        ...         TensorDictModule(MLP(in_features=3, out_features=2, num_cells=[8]),
+        ...                          in_keys=["observation"], out_keys=["param"]),
+        ...         TanhModule(in_keys=["param"], out_keys=["action"], spec=spec))
+        ...     critic = ValueOperator(MLP(in_features=5, out_features=1, num_cells=[8]),
+        ...                            in_keys=["observation", "action"])
+        ...     loss = EnsembleDDPGLoss(actor, critic, num_value_nets=1)
+        ...     return loss.make_value_estimator(gamma=0.99)
+        >>> group = SeedGroup([learner(0), learner(1), learner(2)],
+        ...                   lr_actor=1e-3, lr_critic=1e-3, tau=0.005)
+        >>> batch = TensorDict({"observation": torch.randn(3, 6, 3),
+        ...     "action": torch.rand(3, 6, 2),
+        ...     ("next", "observation"): torch.randn(3, 6, 3),
+        ...     ("next", "reward"): torch.randn(3, 6, 1),
+        ...     ("next", "done"): torch.zeros(3, 6, 1, dtype=torch.bool),
+        ...     ("next", "terminated"): torch.zeros(3, 6, 1, dtype=torch.bool)}, [3, 6])
+        >>> out = group.update(batch)
+        >>> out["loss_value"].shape, out["target_value"].shape
+        (torch.Size([3]), torch.Size([3, 6]))
+    """
+
+    def __init__(
+        self,
+        losses: Sequence[EnsembleDDPGLoss],
+        *,
+        lr_actor: float,
+        lr_critic: float,
+        tau: float,
+        world_model_losses: Sequence[WorldModelEnsembleLoss] | None = None,
+        lr_world_model: float | None = None,
+        draw: Callable[[Tensor, Tensor, bool], Tensor] | None = None,
+        bootstrap_indices: Callable[[int, int], Tensor] | None = None,
+    ) -> None:
+        losses = list(losses)
+        if not losses:
+            raise ValueError("a seed group needs at least one learner")
+        for loss in losses:
+            if not isinstance(loss, EnsembleDDPGLoss):
+                raise TypeError(
+                    f"a seed group runs EnsembleDDPGLoss learners (ddpg, mve, steve, rave), "
+                    f"got {type(loss).__name__}"
+                )
+        self.num_seeds = S = len(losses)
+        self.losses = losses
+        self.num_critics = _same("num_value_nets", [loss.num_value_nets for loss in losses])
+        _same("loss_function", [loss.loss_function for loss in losses])
+        if losses[0].loss_function != "l2":
+            raise ValueError("a seed group's critics regress with loss_function='l2'")
+        self.keys = losses[0].tensor_keys
+        self._estimator_setup(losses)
+        self._networks_setup(losses)
+        self.world_model = None
+        self._bootstrap = bootstrap_indices
+        if self.expanding:
+            if world_model_losses is None or len(world_model_losses) != S:
+                raise ValueError(
+                    f"a value-expansion group needs one world_model_losses entry per seed ({S})"
+                )
+            for loss, wm_loss in zip(losses, world_model_losses, strict=True):
+                if wm_loss.world_model is not loss.value_estimator.world_model:
+                    raise ValueError("each world-model loss must train its learner's own model")
+            self.wm_losses = list(world_model_losses)
+            self.world_model = _GroupedWorldModel(
+                [w.world_model for w in world_model_losses], draw or _draw
+            )
+            for name in ("bootstrap", "logvar_bound_coeff", "reward_coeff", "termination_coeff"):
+                _same(f"world-model loss {name}", [getattr(w, name) for w in world_model_losses])
+            if lr_world_model is None:
+                raise ValueError("a value-expansion group needs lr_world_model")
+            self.wm_optimizer = torch.optim.Adam(
+                self.world_model.leaves, lr=lr_world_model, fused=True
+            )
+        # the weight ForeachSoftUpdate lerps with: 1 - eps, eps = 1 - tau (the same float)
+        self.tau = 1.0 - (1.0 - float(tau))
+        self.actor_optimizer = torch.optim.Adam(self.actor_leaves, lr=lr_actor, fused=True)
+        self.critic_optimizer = torch.optim.Adam(self.critic_leaves, lr=lr_critic, fused=True)
+
+    # ----------------------------------------------------------------- set-up
+    def _estimator_setup(self, losses) -> None:
+        estimators = [loss.value_estimator for loss in losses]
+        kinds = _same("value estimator", [type(e) for e in estimators])
+        self.expanding = issubclass(kinds, ValueExpansionEstimator)
+        e = estimators[0]
+        _same("gamma", [float(x.gamma) for x in estimators])
+        self.gamma = e.gamma.detach().clone()  # the estimator's own float32 number
+        if not self.expanding:
+            from torchrl.objectives.value import TD0Estimator
+
+            if not isinstance(e, TD0Estimator) or e.average_rewards:
+                raise ValueError(
+                    f"a seed group computes TD(0) or value-expansion targets, got {kinds.__name__}"
+                )
+            return
+        for name in ("horizon", "rollout", "mix", "alpha_mode", "variance_eps"):
+            setattr(self, name, _same(name, [getattr(x, name) for x in estimators]))
+        if self.alpha_mode == "tensordict":
+            raise ValueError("a seed group computes alpha itself: use 'constant' or 'adaptive'")
+        _same("alpha", [float(x.alpha) for x in estimators])
+        _same("alpha_error_scale", [float(x.alpha_error_scale) for x in estimators])
+        self.alpha = e.alpha.detach().clone()
+        self.alpha_error_scale = e.alpha_error_scale.detach().clone()
+        self.diagnostic_keys = e.tensor_keys
+
+    def _networks_setup(self, losses) -> None:
+        actor_plan = TensorCall.plan(losses[0].actor_network)
+        critic_plan = TensorCall.plan(losses[0].value_network, stacked=True)
+        if actor_plan is None or critic_plan is None:
+            raise ValueError(
+                "a seed group runs actors and critics made of TorchRL MLPs (and a final "
+                "TanhModule for the actor); this learner's networks cannot be planned"
+            )
+        self.actor, actor_leaves, self.actor_in_keys, tanh = _mlp_layers(
+            actor_plan, [loss.actor_network_params for loss in losses], 0
+        )
+        self.target_actor, _, _, _ = _mlp_layers(
+            actor_plan, [loss.target_actor_network_params for loss in losses], 0
+        )
+        if tanh is None:
+            raise ValueError("a seed group's actor ends in a TanhModule onto the action box")
+        self.tanh = tanh
+        self.critic, critic_leaves, self.critic_in_keys, _ = _mlp_layers(
+            critic_plan, [loss.value_network_params for loss in losses], 1
+        )
+        self.target_critic, _, _, _ = _mlp_layers(
+            critic_plan, [loss.target_value_network_params for loss in losses], 1
+        )
+        self.actor_leaves, self.critic_leaves = actor_leaves, critic_leaves
+        self._lerp = (
+            [t for layer in self.target_actor + self.target_critic
+             for t in (layer.weight, layer.bias) if t is not None],
+            [t.detach() for t in actor_leaves + critic_leaves],
+        )  # fmt: skip
+
+    # ---------------------------------------------------------------- networks
+    def _policy(self, layers, obs: Tensor) -> Tensor:
+        """Actions ``[..., S, R, A]`` for observations ``[..., S, R, F]``."""
+        low, high, rescale, clamp = self.tanh
+        x = _run(layers, obs).tanh()
+        if clamp:
+            eps = torch.finfo(x.dtype).resolution
+            x = x.clamp(-1 + eps, 1 - eps)
+        return low + (high - low) * (x + 1) / 2 if rescale else x
+
+    def _q(self, layers, obs: Tensor, action: Tensor, detach: bool = False) -> Tensor:
+        """``[K, S, R]`` values of the K critics for ``[S, R, F]`` inputs."""
+        inputs = {self.keys.action: action, "observation": obs}
+        xs = [inputs.get(k) for k in self.critic_in_keys]
+        if any(x is None for x in xs):
+            raise ValueError(f"a seed group's critics read {self.critic_in_keys}")
+        return _run(layers, torch.cat(xs, -1), detach).squeeze(-1)
+
+    # ----------------------------------------------------------------- targets
+    def _read(self, batch: TensorDictBase):
+        S, k = self.num_seeds, self.keys
+        if batch.batch_dims != 2 or batch.batch_size[0] != S:
+            raise ValueError(
+                f"a seed group of {S} takes batches of shape [{S}, B], got {tuple(batch.batch_size)}"
+            )
+        if list(self.actor_in_keys) != ["observation"]:
+            raise ValueError(f"a seed group's actor reads 'observation', not {self.actor_in_keys}")
+        obs = batch.get("observation")
+        nxt = batch.get(("next", "observation"))
+        action = batch.get(k.action)
+        reward = batch.get(("next", k.reward)).squeeze(-1)
+        terminated = batch.get(("next", k.terminated), None)
+        if terminated is None:
+            terminated = batch.get(("next", k.done))
+        return obs, action, nxt, reward, terminated.squeeze(-1)
+
+    @torch.no_grad()
+    def value_target(self, batch: TensorDictBase) -> tuple[Tensor, dict[str, Tensor]]:
+        """Each seed's critic target ``[S, B]`` and, for value expansion, its diagnostics
+        (per sample, under the estimator's key names)."""
+        obs, action, nxt, reward, terminated = self._read(batch)
+        if not self.expanding:
+            next_q = self._q(self.target_critic, nxt, self._policy(self.target_actor, nxt))
+            not_terminated = (~terminated).int()
+            return reward + self.gamma * not_terminated * next_q.min(0)[0], {}
+        return self._expansion_target(obs, action, nxt, reward, terminated)
+
+    def _expansion_target(self, obs, action, nxt, reward, terminated):
+        wm, H = self.world_model, self.horizon
+        N, (S, M, D) = wm.num_models, nxt.shape
+        sample = self.rollout == "sample"
+        if self.alpha_mode == "adaptive":
+            mean, _ = wm.predict_transition(obs, action)
+            err = (mean.mean(0) - wm.target_delta(obs, nxt)).pow(2).sum(-1)
+            alpha = VF.adaptive_alpha(err, self.alpha, self.alpha_error_scale)  # [S, M]
+        else:
+            alpha = self.alpha
+        a = self._policy(self.target_actor, nxt)
+        states, actions = [nxt.expand(N, S, M, D)], [a.expand(N, *a.shape)]
+        s = nxt
+        for _ in range(H):
+            s = wm.step(s, a, sample)  # [N, S, M, D]
+            a = self._policy(self.target_actor, s)
+            states.append(s)
+            actions.append(a)
+        states, actions = torch.stack(states, -2), torch.stack(actions, -2)  # [N, S, M, H+1, F]
+        A = actions.shape[-1]
+
+        def per_seed(x, width):  # [N, S, M, H, F] -> [S, N*M*H, F], each seed's rows together
+            return x.transpose(0, 1).reshape(S, -1, width)
+
+        r = wm.reward(
+            per_seed(states[..., :-1, :], D), per_seed(actions[..., :-1, :], A),
+            per_seed(states[..., 1:, :], D), sample,
+        )  # [Nj, S, Ni*M*H, 1]  # fmt: skip
+        rewards = r.reshape(N, S, N, M, H).permute(2, 0, 1, 3, 4)  # [Ni, Nj, S, M, H]
+        logits = wm.termination_logits(states[..., 1:, :].reshape(N, S, M * H, D))
+        done_prob = torch.sigmoid(logits).reshape(N, S, M, H)
+        flat_s = torch.cat([states[0, :, :, 0], per_seed(states[..., 1:, :], D)], 1)
+        flat_a = torch.cat([actions[0, :, :, 0], per_seed(actions[..., 1:, :], A)], 1)
+        q = self._q(self.target_critic, flat_s, flat_a)  # [K, S, M + N*M*H]
+        K = q.shape[0]
+        q0 = q[:, :, :M].reshape(K, 1, S, M, 1).expand(K, N, S, M, 1)
+        rest = q[:, :, M:].reshape(K, S, N, M, H).transpose(1, 2)
+        values = torch.cat([q0, rest], -1).transpose(0, 1)  # [Ni, K, S, M, H+1]
+        continuation = VF.continuation_weights(terminated, done_prob)
+        candidates = VF.candidate_targets(reward, rewards, values, continuation, self.gamma)
+        mean, var = VF.horizon_moments(candidates)
+        target, weights = VF.expansion_target(
+            mean, var, mix=self.mix, alpha=alpha, horizon=H, eps=self.variance_eps
+        )
+        keys = self.diagnostic_keys
+        diagnostics = {
+            keys.alpha: alpha.expand(S, M).unsqueeze(-1),
+            keys.horizon_variance: var,
+            keys.horizon_weights: weights,
+        }
+        return target, diagnostics
+
+    # ----------------------------------------------------------------- updates
+    def update(self, batch: TensorDictBase, step_actor: bool = True) -> TensorDict:
+        """One agent update of every seed on its own rows of ``batch`` (``[S, B]``):
+        critics, then (with ``step_actor``) actor and soft target update, as
+        :func:`~torchrl_rave.recipe.update.agent_update` does for one learner. Returns
+        per-seed outputs (batch size ``[S]``): ``loss_value``, ``loss_actor``,
+        ``target_value`` ``[S, B]``, ``pred_value`` and ``state_action_value_actor``
+        ``[S, K, B]`` and the estimator's diagnostics."""
+        target, diagnostics = self.value_target(batch)
+        obs, action, _, _, _ = self._read(batch)
+        current = self._q(self.critic, obs, action)  # [K, S, B]
+        loss_value = (current - target).pow(2).sum(0).mean(-1)  # [S]
+        q_actor = self._q(self.critic, obs, self._policy(self.actor, obs), detach=True)
+        loss_actor = (-q_actor.mean(0)).mean(-1)  # [S]
+        self.actor_optimizer.zero_grad()
+        self.critic_optimizer.zero_grad()
+        (loss_value.sum() + loss_actor.sum()).backward()
+        self.critic_optimizer.step()
+        if step_actor:
+            self.actor_optimizer.step()
+            with torch.no_grad():
+                torch._foreach_lerp_(self._lerp[0], self._lerp[1], self.tau)
+        return TensorDict(
+            {
+                "loss_value": loss_value.detach(),
+                "loss_actor": loss_actor.detach(),
+                "target_value": target,
+                "pred_value": current.detach().transpose(0, 1),
+                "state_action_value_actor": q_actor.detach().transpose(0, 1),
+                **diagnostics,
+            },
+            batch_size=[self.num_seeds],
+        )
+
+    def _bootstrap_indices(self, B: int, device) -> Tensor:
+        N, S = self.world_model.num_models, self.num_seeds
+        if self._bootstrap is not None:
+            return self._bootstrap(B, S)
+        if not self.wm_losses[0].bootstrap:
+            return torch.arange(B, device=device).expand(N, S, B)
+        return torch.randint(B, (N, S, B), device=device)
+
+    def update_world_model(self, batch: TensorDictBase) -> TensorDict:
+        """One step of every seed's world model on its own rows of ``batch`` (``[S, B]``),
+        as :class:`~torchrl_rave.trainers.WorldModelTrainer.update` does for one: each
+        member on a bootstrap resample of its seed's rows. Returns per-seed losses and
+        the trainer's logged statistics (batch size ``[S]``)."""
+        if self.world_model is None:
+            raise RuntimeError("this seed group has no world model (TD(0) targets)")
+        wm, loss0 = self.world_model, self.wm_losses[0]
+        for w in self.wm_losses:
+            w.world_model.check_normalizers()
+        obs, action, nxt, reward, terminated = self._read(batch)
+        S, B = reward.shape
+        idx = self._bootstrap_indices(B, obs.device)  # [N, S, B]
+        seed = torch.arange(S, device=obs.device).unsqueeze(-1)
+
+        def resample(x):
+            return x[seed, idx]  # [N, S, B, F]
+
+        obs, action, nxt = resample(obs), resample(action), resample(nxt)
+        reward = resample(reward.unsqueeze(-1))
+        terminated = resample(terminated.unsqueeze(-1)).to(obs.dtype)
+        mean, logvar = wm.predict_transition(obs, action)
+        target = wm.target_delta(obs, nxt)
+        transition_nll = gaussian_nll(mean, logvar, target).mean((2, 3))  # [N, S]
+        transition_mse = (mean - target).pow(2).mean((2, 3))
+        r_mean, r_logvar = wm.predict_reward(obs, action, nxt)
+        r_target = wm.reward_norm.normalize(reward)
+        reward_nll = gaussian_nll(r_mean, r_logvar, r_target).mean((2, 3))
+        reward_mse = (r_mean - r_target).pow(2).mean((2, 3))
+        logits = wm.termination_logits(nxt)
+        bce = F.binary_cross_entropy_with_logits(logits, terminated, reduction="none")
+        termination_bce = bce.mean((2, 3))
+        c = loss0.logvar_bound_coeff
+        loss_transition = transition_nll.sum(0) + c * wm.bound_penalty(wm.transition)
+        loss_reward = loss0.reward_coeff * (
+            reward_nll.sum(0) + c * wm.bound_penalty(wm.reward_model)
+        )
+        loss_termination = loss0.termination_coeff * termination_bce.sum(0)
+        self.wm_optimizer.zero_grad()
+        (loss_transition + loss_reward + loss_termination).sum().backward()
+        self.wm_optimizer.step()
+        with torch.no_grad():
+            hit = ((logits > 0).to(terminated.dtype) == terminated).to(obs.dtype)
+        return TensorDict(
+            {
+                "loss_transition": loss_transition.detach(),
+                "loss_reward": loss_reward.detach(),
+                "loss_termination": loss_termination.detach(),
+                "transition_nll": transition_nll.detach().mean(0),
+                "transition_mse": transition_mse.detach().mean(0),
+                "reward_nll": reward_nll.detach().mean(0),
+                "reward_mse": reward_mse.detach().mean(0),
+                "termination_bce": termination_bce.detach().mean(0),
+                "termination_accuracy": hit.mean((0, 2, 3)),
+            },
+            batch_size=[S],
+        )
+
+    # ------------------------------------------------------------- checkpoints
+    def optimizers(self) -> dict[str, torch.optim.Optimizer]:
+        """The group's optimisers by name (their states hold every seed's moments)."""
+        out = {"actor": self.actor_optimizer, "critic": self.critic_optimizer}
+        if self.world_model is not None:
+            out["world_model"] = self.wm_optimizer
+        return out
+
+    def state_dict(self) -> dict:
+        return {name: opt.state_dict() for name, opt in self.optimizers().items()}
+
+    def load_state_dict(self, state: dict) -> None:
+        for name, opt in self.optimizers().items():
+            opt.load_state_dict(state[name])
