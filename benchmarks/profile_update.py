@@ -14,6 +14,10 @@ M (1 + N H) = 1664 rows of the target, ``[4, 1536, 64]`` the reward members on N
 steps alike), with a ``TorchDispatchMode``: at these sizes their number, more than the
 arithmetic, sets the time.
 
+``--seeds S`` profiles a :class:`~torchrl_rave.trainers.SeedGroup` of ``S`` learners
+instead (``seed_group.py`` builds it): ``--ops --seeds 8`` shows that a group's update makes
+as many ATen calls as a group of one.
+
 ``--floor`` is a lower bound on the step's time: it records every matmul kernel one step
 calls (``mm``, ``addmm``, ``bmm``, ``baddbmm``, forward and backward, with their operands'
 shapes and strides) and replays exactly that list back to back on operands of the same
@@ -141,6 +145,13 @@ def main(argv: list[str] | None = None) -> str:
     )
     parser.add_argument("--ops", action="store_true", help="count ATen calls per step instead")
     parser.add_argument(
+        "--seeds",
+        type=int,
+        default=0,
+        help="profile a SeedGroup of this many learners instead (ddpg, mve, steve, rave; "
+        "one step updates every seed, as in seed_group.py)",
+    )
+    parser.add_argument(
         "--floor",
         action="store_true",
         help="replay one step's matmul kernels back to back: a lower bound on its time",
@@ -157,8 +168,16 @@ def main(argv: list[str] | None = None) -> str:
 
     torch.set_num_threads(args.threads)
     device = torch.device("cpu")
-    step, cfg, _ = recipe_update(args.algorithm, [], device, target_only=args.target_only)
-    data = batches(cfg.replay_buffer.batch_size, device)
+    if args.seeds:
+        from seed_group import group_case
+
+        case, group = group_case(args.algorithm, args.seeds, device)
+        step, data = case._step, case.data
+        if args.target_only:
+            step = group.value_target
+    else:
+        step, cfg, _ = recipe_update(args.algorithm, [], device, target_only=args.target_only)
+        data = batches(cfg.replay_buffer.batch_size, device)
 
     def run(n: int) -> None:
         for i in range(n):
@@ -170,6 +189,8 @@ def main(argv: list[str] | None = None) -> str:
     run(3 * args.steps)
     ms = (time.perf_counter() - start) / (3 * args.steps) * 1e3
     what = "value target" if args.target_only else "update"
+    if args.seeds:
+        what = f"{what} of a group of {args.seeds} seeds"
     out = [
         f"{args.algorithm} {what}, default sizes, {args.threads} thread(s), "
         f"{'keep_freed_memory()' if malloc_kept else 'default malloc'}: {ms:.1f} ms each"

@@ -330,3 +330,23 @@ def test_optimizer_step_times_the_recipes_own_parameter_sets(tmp_path):
     ]
     assert rows["critic"]["elements"] == 4 * (14 * 64 + 64 + 2 * (64 * 64 + 64) + 64 + 1)
     assert all(r[f"{v}_us"] > 0 for r in rows.values() for v in ("fused", "foreach", "loop"))
+
+
+def test_seed_group_benchmark_calls_do_not_grow_with_the_group(tmp_path):
+    """benchmarks/seed_group.py: a group of 2 makes no more ATen calls per update than a
+    group of 1, while two separate updates make twice one's; its JSON says so."""
+    import seed_group
+
+    out = tmp_path / "s.json"
+    seed_group.main(
+        ["--algorithms", "ddpg", "--seeds", "1", "2", "--threads", "1", "--seconds", "0.1",
+         "--out", str(out)]
+    )  # fmt: skip
+    rows = {r["seeds"]: r for r in json.loads(out.read_text())["rows"]}
+    assert rows[2]["group_aten_calls"] <= rows[1]["group_aten_calls"]
+    assert rows[2]["separate_aten_calls"] == 2 * rows[1]["separate_aten_calls"]
+    assert rows[2]["group_gflop"] == pytest.approx(2 * rows[1]["group_gflop"], rel=1e-6)
+    for r in rows.values():
+        assert r["speedup"] == pytest.approx(
+            r["group_per_seed_updates_per_s"] / r["separate_per_seed_updates_per_s"]
+        )

@@ -100,7 +100,7 @@ class Recorder:
 
 def replay(monkeypatch, agent, recorder: Recorder, s: int) -> None:
     """Makes ``agent``'s world model draw seed ``s``'s slice of the group's draws."""
-    noise = iter([eps[:, s] for eps in recorder.noise])
+    noise = iter([eps[s] for eps in recorder.noise])
 
     def draw(mean, logvar, sample):
         if not sample:
@@ -157,13 +157,12 @@ def test_each_seed_is_its_single_update(algorithm, S, monkeypatch):
                 diag = loss.value_estimator.diagnostics
                 for key in diag.keys():  # noqa: SIM118 (a TensorDict)
                     close(got[key], diag[key], f"seed {s} step {i} {key}")
-            # gradients: the group's leaves hold seed s at dim 0 (actor) or 1 (critics)
+            # gradients: the group's leaves hold seed s at dim 0
             leaves = [*loss.actor_network_params.values(True, True),
                       *loss.value_network_params.values(True, True)]  # fmt: skip
             single = grads([p for p in leaves if p.requires_grad])  # not the action bounds
-            n_actor = len(group.actor_leaves)
             for j, (g_single, g_group) in enumerate(zip(single, group_grads[i], strict=True)):
-                close(g_group.select(0 if j < n_actor else 1, s), g_single, f"grad {j}")
+                close(g_group[s], g_single, f"grad {j}")
         # parameters after both steps (targets, world model and normalisers too): the
         # grouped learner's leaves are views of the group's tensors
         mine, theirs = grouped[s].state_components(), agent.state_components()
@@ -198,11 +197,9 @@ def test_no_seed_reads_another_seeds_data(algorithm):
             assert torch.equal(a[key][0], b[key][0]) and torch.equal(a[key][2], b[key][2]), key
             if key in ("loss_value", "loss_reward"):  # seed 1's own numbers did change
                 assert not torch.equal(a[key][1], b[key][1]), key
-    n_actor = len(params_a) // 2
-    for j, (a, b) in enumerate(zip(params_a, params_b, strict=True)):
-        dim = 0 if j < n_actor else 1
+    for a, b in zip(params_a, params_b, strict=True):
         for s in (0, 2):
-            assert torch.equal(a.select(dim, s), b.select(dim, s))
+            assert torch.equal(a[s], b[s])
 
 
 def test_learners_read_the_group_weights():

@@ -11,18 +11,17 @@ a dimension of its own:
 network             one learner's leaf                the group's leaf
 ==================  ================================  ===================================
 actor               ``[out, in]``                     ``[S, out, in]``
-K critics           ``[K, out, in]``                  ``[K, S, out, in]``
-world model         ``[N, in, out]``                  ``[N, S, in, out]``
+K critics           ``[K, out, in]``                  ``[S, K, out, in]``
+world model         ``[N, in, out]``                  ``[S, N, in, out]``
 normalisers         ``[F]``                           ``[S, F]``
 ==================  ================================  ===================================
 
 Each learner's own leaves become views of its slice, so its modules (the policy a collector
 runs, the evaluation actor, ``state_dict`` and checkpoints) keep working on the group's
 current weights, unchanged. An update then evaluates each network once for all seeds: the
-seed is the last batch dimension of the weights and the dimension before the rows of the
-inputs (``[*members, S, rows, features]``), so each layer is one batched matmul in which
-seed ``s``'s rows only meet seed ``s``'s weights, and the number of kernel calls does not
-depend on ``S``. Losses are summed over seeds after their per-seed reductions, so one
+seed leads the weights and every activation (``[S, *members, rows, features]``), and the
+``S x members`` pairs are the batch of one ``baddbmm`` per layer, so seed ``s``'s rows only
+meet seed ``s``'s weights and the number of kernel calls does not depend on ``S``. Losses are summed over seeds after their per-seed reductions, so one
 backward gives each seed exactly its own gradient, and Adam and the soft target update act
 element-wise.
 
@@ -77,34 +76,36 @@ def _same(name: str, values: Sequence) -> object:
 
 
 class _Linear:
-    """One grouped affine layer and the activation after it (``None``: none)."""
+    """One grouped affine layer and the activation after it (``None``: none).
+
+    The weight is ``[S, *E, out, in]`` (``output_major``, ``nn.Linear``'s layout) or
+    ``[S, *E, in, out]`` (:class:`~torchrl_rave.modules.EnsembleLinear`'s), with ``E`` the
+    ensemble dimensions (none for the actor, ``K`` critics, ``N`` world-model members).
+    Inputs are ``[S, R, in]``, shared by a seed's members, or ``[S, *E, R, in]``, one block
+    per member; the output is ``[S, *E, R, out]``."""
 
     __slots__ = ("weight", "bias", "activation", "output_major")
 
     def __init__(self, weight, bias, activation, output_major: bool) -> None:
         self.weight, self.bias, self.activation = weight, bias, activation
-        # nn.Linear's [out, in] layout (True) or EnsembleLinear's [in, out]
         self.output_major = output_major
 
     def __call__(self, x: Tensor, detach: bool = False) -> Tensor:
         w, b = self.weight, self.bias
         if detach:
             w, b = w.detach(), None if b is None else b.detach()
-        if self.output_major:  # [*E, S, out, in] and [*E, S, out]
-            y = torch.matmul(x, w.mT)
-            y = y if b is None else y + b.unsqueeze(-2)
-        else:  # [*E, S, in, out] and [*E, S, 1, out]
-            if w.shape[-1] < w.shape[-2]:  # as EnsembleLinear._matmul_weight
-                w = w.mT.clone(memory_format=torch.contiguous_format).mT
-            if x.dim() == w.dim():  # per member: one baddbmm over members x seeds
-                lead = w.shape[:-2]
-                y = torch.baddbmm(
-                    b.reshape(-1, *b.shape[-2:]),
-                    x.reshape(-1, *x.shape[-2:]),
-                    w.reshape(-1, *w.shape[-2:]),
-                ).reshape(*lead, x.shape[-2], w.shape[-1])
-            else:
-                y = torch.matmul(x, w) + b
+        if self.output_major:
+            w = w.mT  # a transposed view: BLAS reads it as it is
+        elif w.shape[-1] < w.shape[-2]:  # as EnsembleLinear._matmul_weight
+            w = w.mT.clone(memory_format=torch.contiguous_format).mT
+        lead, (fan_in, fan_out) = w.shape[:-2], w.shape[-2:]
+        rows = x.shape[-2]
+        if x.dim() == 3 and len(lead) > 1:  # shared by the members: one copy per member
+            x = x.unsqueeze(1).expand(*lead, rows, fan_in)
+        x = x.reshape(-1, rows, fan_in)
+        w = w.reshape(-1, fan_in, fan_out)
+        y = torch.bmm(x, w) if b is None else torch.baddbmm(b.reshape(-1, 1, fan_out), x, w)
+        y = y.view(*lead, rows, fan_out)
         if self.activation is not None:
             inplace = inplace_activation(self.activation)
             y = self.activation(y) if inplace is None else inplace(y)
@@ -159,23 +160,24 @@ class _GroupedNormalizer:
         self.var = _fuse([n.var for n in normalizers], 0, False)
         self.count = _fuse([n.count for n in normalizers], 0, False)
 
-    def _stats(self):
-        # [S, 1, F]: broadcasts against [*members, S, rows, F]
-        return self.mean.unsqueeze(-2), self.var.sqrt().clamp_min(self.min_std).unsqueeze(-2)
+    def _stats(self, x: Tensor):
+        # [S, 1, ..., F]: broadcasts against [S, *members, rows, F]
+        shape = (x.shape[0],) + (1,) * (x.dim() - 2) + (x.shape[-1],)
+        return self.mean.view(shape), self.var.sqrt().clamp_min(self.min_std).view(shape)
 
     def normalize(self, x: Tensor) -> Tensor:
-        mean, std = self._stats()
+        mean, std = self._stats(x)
         return (x - mean) / std
 
     def denormalize(self, x: Tensor) -> Tensor:
-        mean, std = self._stats()
+        mean, std = self._stats(x)
         return x * std + mean
 
 
 class _GroupedWorldModel:
-    """The world models of all seeds as one ``[N, S]`` ensemble; the methods mirror
+    """The world models of all seeds as one ``[S, N]`` ensemble; the methods mirror
     :class:`~torchrl_rave.modules.WorldModelEnsemble`'s with inputs ``[S, R, F]`` (shared
-    by the members) or ``[N, S, R, F]`` (per member) and outputs ``[N, S, R, F']``."""
+    by the members) or ``[S, N, R, F]`` (per member) and outputs ``[S, N, R, F']``."""
 
     def __init__(self, models, draw: Callable[[Tensor, Tensor, bool], Tensor]) -> None:
         self.num_models = _same("world_model.num_models", [m.num_models for m in models])
@@ -190,8 +192,8 @@ class _GroupedWorldModel:
         self.reward_norm = _GroupedNormalizer([m.reward_norm for m in models])
 
     def _linear(self, layers: Sequence[EnsembleLinear], activation) -> _Linear:
-        w = _fuse([layer.weight for layer in layers], 1, True)
-        b = _fuse([layer.bias for layer in layers], 1, True)
+        w = _fuse([layer.weight for layer in layers], 0, True)
+        b = _fuse([layer.bias for layer in layers], 0, True)
         self.leaves += [w, b]
         return _Linear(w, b, activation, output_major=False)
 
@@ -209,8 +211,8 @@ class _GroupedWorldModel:
             "trunk": self._mlp([h.trunk for h in heads], last_activation=True),
             "mean": self._linear([h.mean_head for h in heads], None),
             "logvar": self._linear([h.logvar_head for h in heads], None),
-            "max": _fuse([h.max_logvar for h in heads], 1, True),
-            "min": _fuse([h.min_logvar for h in heads], 1, True),
+            "max": _fuse([h.max_logvar for h in heads], 0, True),
+            "min": _fuse([h.min_logvar for h in heads], 0, True),
         }
         self.leaves += [out["max"], out["min"]]
         return out
@@ -220,14 +222,14 @@ class _GroupedWorldModel:
         h = _run(head["trunk"], x)
         mean = head["mean"](h)
         raw = head["logvar"](h)
-        top, bottom = head["max"], head["min"]
+        top, bottom = head["max"], head["min"]  # [S, N, 1, F]
         logvar = top - F.softplus(top - raw)
         return mean, bottom + F.softplus(logvar - bottom)
 
     @staticmethod
     def bound_penalty(head: dict) -> Tensor:
         """Each seed's ``sum(max_logvar) - sum(min_logvar)``, ``[S]``."""
-        return head["max"].sum((0, 2, 3)) - head["min"].sum((0, 2, 3))
+        return head["max"].sum((1, 2, 3)) - head["min"].sum((1, 2, 3))
 
     def _sa(self, obs: Tensor, action: Tensor) -> Tensor:
         return torch.cat([self.obs_norm.normalize(obs), self.action_norm.normalize(action)], -1)
@@ -237,7 +239,8 @@ class _GroupedWorldModel:
 
     def step(self, obs, action, sample: bool) -> Tensor:
         delta = self.draw(*self.predict_transition(obs, action), sample)
-        return obs + self.delta_norm.denormalize(delta)
+        base = obs if obs.dim() == 4 else obs.unsqueeze(1)  # [S, R, D] is every member's
+        return base + self.delta_norm.denormalize(delta)
 
     def predict_reward(self, obs, action, next_obs):
         x = torch.cat([self._sa(obs, action), self.obs_norm.normalize(next_obs)], -1)
@@ -417,10 +420,10 @@ class SeedGroup:
             raise ValueError("a seed group's actor ends in a TanhModule onto the action box")
         self.tanh = tanh
         self.critic, critic_leaves, self.critic_in_keys, _ = _mlp_layers(
-            critic_plan, [loss.value_network_params for loss in losses], 1
+            critic_plan, [loss.value_network_params for loss in losses], 0
         )
         self.target_critic, _, _, _ = _mlp_layers(
-            critic_plan, [loss.target_value_network_params for loss in losses], 1
+            critic_plan, [loss.target_value_network_params for loss in losses], 0
         )
         self.actor_leaves, self.critic_leaves = actor_leaves, critic_leaves
         self._lerp = (
@@ -431,16 +434,17 @@ class SeedGroup:
 
     # ---------------------------------------------------------------- networks
     def _policy(self, layers, obs: Tensor) -> Tensor:
-        """Actions ``[..., S, R, A]`` for observations ``[..., S, R, F]``."""
+        """Actions ``[S, ..., A]`` for observations ``[S, ..., F]``."""
         low, high, rescale, clamp = self.tanh
-        x = _run(layers, obs).tanh()
+        x = _run(layers, obs.reshape(obs.shape[0], -1, obs.shape[-1]))
+        x = x.view(*obs.shape[:-1], x.shape[-1]).tanh()
         if clamp:
             eps = torch.finfo(x.dtype).resolution
             x = x.clamp(-1 + eps, 1 - eps)
         return low + (high - low) * (x + 1) / 2 if rescale else x
 
     def _q(self, layers, obs: Tensor, action: Tensor, detach: bool = False) -> Tensor:
-        """``[K, S, R]`` values of the K critics for ``[S, R, F]`` inputs."""
+        """``[S, K, R]`` values of the K critics for ``[S, R, F]`` inputs."""
         inputs = {self.keys.action: action, "observation": obs}
         xs = [inputs.get(k) for k in self.critic_in_keys]
         if any(x is None for x in xs):
@@ -473,7 +477,7 @@ class SeedGroup:
         if not self.expanding:
             next_q = self._q(self.target_critic, nxt, self._policy(self.target_actor, nxt))
             not_terminated = (~terminated).int()
-            return reward + self.gamma * not_terminated * next_q.min(0)[0], {}
+            return reward + self.gamma * not_terminated * next_q.min(1)[0], {}
         return self._expansion_target(obs, action, nxt, reward, terminated)
 
     def _expansion_target(self, obs, action, nxt, reward, terminated):
@@ -481,39 +485,41 @@ class SeedGroup:
         N, (S, M, D) = wm.num_models, nxt.shape
         sample = self.rollout == "sample"
         if self.alpha_mode == "adaptive":
-            mean, _ = wm.predict_transition(obs, action)
-            err = (mean.mean(0) - wm.target_delta(obs, nxt)).pow(2).sum(-1)
+            mean, _ = wm.predict_transition(obs, action)  # [S, N, M, D]
+            err = (mean.mean(1) - wm.target_delta(obs, nxt)).pow(2).sum(-1)
             alpha = VF.adaptive_alpha(err, self.alpha, self.alpha_error_scale)  # [S, M]
         else:
             alpha = self.alpha
         a = self._policy(self.target_actor, nxt)
-        states, actions = [nxt.expand(N, S, M, D)], [a.expand(N, *a.shape)]
+        states = [nxt.unsqueeze(1).expand(S, N, M, D)]
+        actions = [a.unsqueeze(1).expand(S, N, *a.shape[1:])]
         s = nxt
         for _ in range(H):
-            s = wm.step(s, a, sample)  # [N, S, M, D]
+            s = wm.step(s, a, sample)  # [S, N, M, D]
             a = self._policy(self.target_actor, s)
             states.append(s)
             actions.append(a)
-        states, actions = torch.stack(states, -2), torch.stack(actions, -2)  # [N, S, M, H+1, F]
+        states, actions = torch.stack(states, -2), torch.stack(actions, -2)  # [S, N, M, H+1, F]
         A = actions.shape[-1]
 
-        def per_seed(x, width):  # [N, S, M, H, F] -> [S, N*M*H, F], each seed's rows together
-            return x.transpose(0, 1).reshape(S, -1, width)
+        def rows(x, width):  # [S, N, M, H, F] -> [S, N*M*H, F]
+            return x.reshape(S, -1, width)
 
+        # the functional layouts put the seed with the batch: [Ni, Nj, K, S, M, H+1]
         r = wm.reward(
-            per_seed(states[..., :-1, :], D), per_seed(actions[..., :-1, :], A),
-            per_seed(states[..., 1:, :], D), sample,
-        )  # [Nj, S, Ni*M*H, 1]  # fmt: skip
-        rewards = r.reshape(N, S, N, M, H).permute(2, 0, 1, 3, 4)  # [Ni, Nj, S, M, H]
-        logits = wm.termination_logits(states[..., 1:, :].reshape(N, S, M * H, D))
-        done_prob = torch.sigmoid(logits).reshape(N, S, M, H)
-        flat_s = torch.cat([states[0, :, :, 0], per_seed(states[..., 1:, :], D)], 1)
-        flat_a = torch.cat([actions[0, :, :, 0], per_seed(actions[..., 1:, :], A)], 1)
-        q = self._q(self.target_critic, flat_s, flat_a)  # [K, S, M + N*M*H]
-        K = q.shape[0]
-        q0 = q[:, :, :M].reshape(K, 1, S, M, 1).expand(K, N, S, M, 1)
-        rest = q[:, :, M:].reshape(K, S, N, M, H).transpose(1, 2)
-        values = torch.cat([q0, rest], -1).transpose(0, 1)  # [Ni, K, S, M, H+1]
+            rows(states[..., :-1, :], D), rows(actions[..., :-1, :], A),
+            rows(states[..., 1:, :], D), sample,
+        )  # [S, Nj, Ni*M*H, 1]  # fmt: skip
+        rewards = r.view(S, N, N, M, H).permute(2, 1, 0, 3, 4)  # [Ni, Nj, S, M, H]
+        logits = wm.termination_logits(states[..., 1:, :].reshape(S, N, M * H, D))
+        done_prob = torch.sigmoid(logits).view(S, N, M, H).transpose(0, 1)  # [Ni, S, M, H]
+        flat_s = torch.cat([states[:, 0, :, 0], rows(states[..., 1:, :], D)], 1)
+        flat_a = torch.cat([actions[:, 0, :, 0], rows(actions[..., 1:, :], A)], 1)
+        q = self._q(self.target_critic, flat_s, flat_a)  # [S, K, M + N*M*H]
+        K = q.shape[1]
+        q0 = q[:, :, :M].reshape(S, K, 1, M, 1).expand(S, K, N, M, 1)
+        rest = q[:, :, M:].reshape(S, K, N, M, H)
+        values = torch.cat([q0, rest], -1).permute(2, 1, 0, 3, 4)  # [Ni, K, S, M, H+1]
         continuation = VF.continuation_weights(terminated, done_prob)
         candidates = VF.candidate_targets(reward, rewards, values, continuation, self.gamma)
         mean, var = VF.horizon_moments(candidates)
@@ -538,10 +544,10 @@ class SeedGroup:
         ``[S, K, B]`` and the estimator's diagnostics."""
         target, diagnostics = self.value_target(batch)
         obs, action, _, _, _ = self._read(batch)
-        current = self._q(self.critic, obs, action)  # [K, S, B]
-        loss_value = (current - target).pow(2).sum(0).mean(-1)  # [S]
+        current = self._q(self.critic, obs, action)  # [S, K, B]
+        loss_value = (current - target.unsqueeze(1)).pow(2).sum(1).mean(-1)  # [S]
         q_actor = self._q(self.critic, obs, self._policy(self.actor, obs), detach=True)
-        loss_actor = (-q_actor.mean(0)).mean(-1)  # [S]
+        loss_actor = (-q_actor.mean(1)).mean(-1)  # [S]
         self.actor_optimizer.zero_grad()
         self.critic_optimizer.zero_grad()
         (loss_value.sum() + loss_actor.sum()).backward()
@@ -555,8 +561,8 @@ class SeedGroup:
                 "loss_value": loss_value.detach(),
                 "loss_actor": loss_actor.detach(),
                 "target_value": target,
-                "pred_value": current.detach().transpose(0, 1),
-                "state_action_value_actor": q_actor.detach().transpose(0, 1),
+                "pred_value": current.detach(),
+                "state_action_value_actor": q_actor.detach(),
                 **diagnostics,
             },
             batch_size=[self.num_seeds],
@@ -582,18 +588,19 @@ class SeedGroup:
             w.world_model.check_normalizers()
         obs, action, nxt, reward, terminated = self._read(batch)
         S, B = reward.shape
-        idx = self._bootstrap_indices(B, obs.device)  # [N, S, B]
-        seed = torch.arange(S, device=obs.device).unsqueeze(-1)
+        # drawn [N, S, B], as one learner draws [N, B]; used [S, N, B]
+        idx = self._bootstrap_indices(B, obs.device).transpose(0, 1)
+        seed = torch.arange(S, device=obs.device).view(S, 1, 1)
 
         def resample(x):
-            return x[seed, idx]  # [N, S, B, F]
+            return x[seed, idx]  # [S, N, B, F]
 
         obs, action, nxt = resample(obs), resample(action), resample(nxt)
         reward = resample(reward.unsqueeze(-1))
         terminated = resample(terminated.unsqueeze(-1)).to(obs.dtype)
         mean, logvar = wm.predict_transition(obs, action)
         target = wm.target_delta(obs, nxt)
-        transition_nll = gaussian_nll(mean, logvar, target).mean((2, 3))  # [N, S]
+        transition_nll = gaussian_nll(mean, logvar, target).mean((2, 3))  # [S, N]
         transition_mse = (mean - target).pow(2).mean((2, 3))
         r_mean, r_logvar = wm.predict_reward(obs, action, nxt)
         r_target = wm.reward_norm.normalize(reward)
@@ -603,11 +610,11 @@ class SeedGroup:
         bce = F.binary_cross_entropy_with_logits(logits, terminated, reduction="none")
         termination_bce = bce.mean((2, 3))
         c = loss0.logvar_bound_coeff
-        loss_transition = transition_nll.sum(0) + c * wm.bound_penalty(wm.transition)
+        loss_transition = transition_nll.sum(1) + c * wm.bound_penalty(wm.transition)
         loss_reward = loss0.reward_coeff * (
-            reward_nll.sum(0) + c * wm.bound_penalty(wm.reward_model)
+            reward_nll.sum(1) + c * wm.bound_penalty(wm.reward_model)
         )
-        loss_termination = loss0.termination_coeff * termination_bce.sum(0)
+        loss_termination = loss0.termination_coeff * termination_bce.sum(1)
         self.wm_optimizer.zero_grad()
         (loss_transition + loss_reward + loss_termination).sum().backward()
         self.wm_optimizer.step()
@@ -618,12 +625,12 @@ class SeedGroup:
                 "loss_transition": loss_transition.detach(),
                 "loss_reward": loss_reward.detach(),
                 "loss_termination": loss_termination.detach(),
-                "transition_nll": transition_nll.detach().mean(0),
-                "transition_mse": transition_mse.detach().mean(0),
-                "reward_nll": reward_nll.detach().mean(0),
-                "reward_mse": reward_mse.detach().mean(0),
-                "termination_bce": termination_bce.detach().mean(0),
-                "termination_accuracy": hit.mean((0, 2, 3)),
+                "transition_nll": transition_nll.detach().mean(1),
+                "transition_mse": transition_mse.detach().mean(1),
+                "reward_nll": reward_nll.detach().mean(1),
+                "reward_mse": reward_mse.detach().mean(1),
+                "termination_bce": termination_bce.detach().mean(1),
+                "termination_accuracy": hit.mean((1, 2, 3)),
             },
             batch_size=[S],
         )

@@ -1,0 +1,199 @@
+"""Many seeds in one learner: per-seed updates per second of a :class:`SeedGroup` of S
+learners against S separate single-learner updates, measured side by side in one process.
+
+    python benchmarks/seed_group.py                      # rave and ddpg, S = 1, 2, 4, 8, 1 and 2 threads
+    python benchmarks/seed_group.py --device cuda        # on a GPU
+    python benchmarks/seed_group.py --algorithms rave --seeds 1 4 --threads 2
+
+For each algorithm, thread count and S, two workloads run interleaved (the median of
+several rounds, as in ``update_throughput.py``):
+
+- *separate*: S learners built by the recipe (``make_agent``, default sizes, Hopper-v5
+  shapes, seeds 0..S-1), each taking its own update in turn: the world-model step
+  (``WorldModelTrainer.update``) and the agent update (``agent_update``), exactly what a
+  single run does per update;
+- *group*: the same S learners fused into one :class:`~torchrl_rave.trainers.SeedGroup`,
+  taking ``update_world_model`` and ``update`` on a ``[S, B]`` batch.
+
+Reported per S: per-seed updates per second of each, their ratio (the group's speed-up),
+the ATen calls one group update makes (a ``TorchDispatchMode`` count, forward, backward
+and optimiser steps; it should not grow with S), and the share of the dense matmul peak
+(counted matmul FLOPs x updates per second / peak, measured in the same process).
+Results go to stdout and ``benchmarks/seed_group.json`` (``--out``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+import torch
+from profile_update import _CountOps
+from provenance import provenance
+from tensordict import TensorDict
+from update_throughput import (
+    OBS_DIM,
+    Case,
+    _Spec,
+    batches,
+    matmul_peak,
+    measure,
+    recipe_config,
+    sync,
+)
+
+from torchrl_rave.recipe.agent import make_agent
+from torchrl_rave.recipe.config import check_config
+from torchrl_rave.recipe.memory import keep_freed_memory
+from torchrl_rave.recipe.update import make_agent_step
+from torchrl_rave.trainers import SeedGroup
+
+ROOT = Path(__file__).resolve().parents[1]
+ACT_DIM = 3
+
+
+def learners(algorithm: str, S: int, device):
+    """S recipe learners of ``algorithm`` (seeds 0..S-1, normalisers fitted on random
+    data) and their config."""
+    cfg = recipe_config([f"algorithm={algorithm}"])
+    check_config(cfg)
+    agents = []
+    for seed in range(S):
+        torch.manual_seed(seed)
+        agent = make_agent(cfg, _Spec(device), device)
+        if agent.world_model is not None:
+            agent.world_model.update_normalizers(
+                torch.randn(256, OBS_DIM, device=device),
+                torch.rand(256, ACT_DIM, device=device) * 2 - 1,
+                torch.randn(256, OBS_DIM, device=device),
+                torch.randn(256, device=device),
+            )
+        agents.append(agent)
+    return cfg, agents
+
+
+def separate_case(algorithm: str, S: int, device) -> Case:
+    cfg, agents = learners(algorithm, S, device)
+    steps = []
+    for agent in agents:
+        agent_step = make_agent_step(cfg, agent.loss, agent.optimizers, agent.target_updater)
+        steps.append((agent.world_model_trainer, agent_step))
+    data = batches(cfg.replay_buffer.batch_size, device)
+
+    def step(batch):
+        for wm_trainer, agent_step in steps:
+            if wm_trainer is not None:
+                wm_trainer.update(batch)
+            agent_step(batch)
+
+    return Case(f"{algorithm} separate x{S}", step, data)
+
+
+def group_case(algorithm: str, S: int, device) -> tuple[Case, SeedGroup]:
+    cfg, agents = learners(algorithm, S, device)
+    model_based = agents[0].world_model is not None
+    group = SeedGroup(
+        [a.loss for a in agents],
+        lr_actor=cfg.optim.lr_actor,
+        lr_critic=cfg.optim.lr_critic,
+        tau=cfg.optim.tau,
+        world_model_losses=[a.world_model_trainer.loss for a in agents] if model_based else None,
+        lr_world_model=cfg.world_model.lr if model_based else None,
+    )
+    B = cfg.replay_buffer.batch_size
+    data = [
+        TensorDict.maybe_dense_stack(list(b.split(B))) if S > 1 else b.unsqueeze(0)
+        for b in batches(B * S, device)
+    ]
+
+    def step(batch):
+        if model_based:
+            group.update_world_model(batch)
+        group.update(batch)
+
+    return Case(f"{algorithm} group x{S}", step, data), group
+
+
+def aten_calls(case: Case, steps: int = 3) -> float:
+    case.step()  # lazily built state (optimiser moments) out of the count
+    with _CountOps() as mode:
+        for _ in range(steps):
+            case.step()
+    return sum(mode.counts.values()) / steps
+
+
+def run(algorithms, seeds, threads, device, seconds: float) -> dict:
+    peak = {}
+    rows = []
+    for n_threads in threads:
+        if device.type == "cpu":
+            torch.set_num_threads(n_threads)
+        peak[n_threads] = matmul_peak(device)
+        for algorithm in algorithms:
+            for S in seeds:
+                separate = separate_case(algorithm, S, device)
+                group, _ = group_case(algorithm, S, device)
+                group.count_flops()
+                calls = aten_calls(group)
+                separate_calls = aten_calls(separate)
+                measure([separate, group], device, seconds)
+                sync(device)
+                per_seed_group = S / group.seconds
+                per_seed_separate = S / separate.seconds
+                row = {
+                    "algorithm": algorithm,
+                    "threads": n_threads,
+                    "seeds": S,
+                    "separate_per_seed_updates_per_s": per_seed_separate,
+                    "group_per_seed_updates_per_s": per_seed_group,
+                    "speedup": per_seed_group / per_seed_separate,
+                    "group_ms": group.seconds * 1e3,
+                    "separate_ms": separate.seconds * 1e3,
+                    "group_aten_calls": calls,
+                    "separate_aten_calls": separate_calls,
+                    "group_gflop": group.flops / 1e9,
+                    "group_share_of_peak": group.flops / group.seconds / 1e9 / peak[n_threads],
+                    "separate_share_of_peak": group.flops
+                    / separate.seconds
+                    / 1e9
+                    / peak[n_threads],
+                }
+                rows.append(row)
+                print(
+                    f"{algorithm:5s} threads={n_threads} S={S}: per-seed updates/s "
+                    f"separate {per_seed_separate:7.1f}  group {per_seed_group:7.1f}  "
+                    f"x{row['speedup']:.2f}   ATen calls/update {calls:.0f} "
+                    f"(separate {separate_calls:.0f})   "
+                    f"{row['group_share_of_peak']:.1%} of peak "
+                    f"(separate {row['separate_share_of_peak']:.1%})",
+                    flush=True,
+                )
+    return {"matmul_peak_gflops": peak, "rows": rows}
+
+
+def main(argv: list[str] | None = None) -> dict:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--algorithms", nargs="+", default=["rave", "ddpg"])
+    parser.add_argument("--seeds", nargs="+", type=int, default=[1, 2, 4, 8])
+    parser.add_argument("--threads", nargs="+", type=int, default=[1, 2])
+    parser.add_argument("--device", default="cpu")
+    parser.add_argument("--seconds", type=float, default=4.0, help="timed per case")
+    parser.add_argument("--out", type=Path, default=ROOT / "benchmarks" / "seed_group.json")
+    args = parser.parse_args(argv)
+    device = torch.device(args.device)
+    malloc_kept = keep_freed_memory()
+    threads = args.threads if device.type == "cpu" else [torch.get_num_threads()]
+    result = {
+        **provenance("seed_group.py", argv),
+        "device": torch.cuda.get_device_name(device) if device.type == "cuda" else "cpu",
+        "malloc": "keep_freed_memory" if malloc_kept else "default",
+        **run(args.algorithms, args.seeds, threads, device, args.seconds),
+    }
+    args.out.write_text(json.dumps(result, indent=1) + "\n")
+    print(f"wrote {args.out}")
+    return result
+
+
+if __name__ == "__main__":
+    main()
