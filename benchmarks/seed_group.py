@@ -33,44 +33,28 @@ from profile_update import _CountOps
 from provenance import provenance
 from tensordict import TensorDict
 from update_throughput import (
-    OBS_DIM,
     Case,
-    _Spec,
     batches,
     matmul_peak,
     measure,
+    recipe_agent,
     recipe_config,
     sync,
 )
 
-from torchrl_rave.recipe.agent import make_agent
-from torchrl_rave.recipe.config import check_config
+from torchrl_rave.recipe.agent import make_seed_group
 from torchrl_rave.recipe.memory import keep_freed_memory
 from torchrl_rave.recipe.update import make_agent_step
 from torchrl_rave.trainers import SeedGroup
 
 ROOT = Path(__file__).resolve().parents[1]
-ACT_DIM = 3
 
 
 def learners(algorithm: str, S: int, device):
     """S recipe learners of ``algorithm`` (seeds 0..S-1, normalisers fitted on random
     data) and their config."""
-    cfg = recipe_config([f"algorithm={algorithm}"])
-    check_config(cfg)
-    agents = []
-    for seed in range(S):
-        torch.manual_seed(seed)
-        agent = make_agent(cfg, _Spec(device), device)
-        if agent.world_model is not None:
-            agent.world_model.update_normalizers(
-                torch.randn(256, OBS_DIM, device=device),
-                torch.rand(256, ACT_DIM, device=device) * 2 - 1,
-                torch.randn(256, OBS_DIM, device=device),
-                torch.randn(256, device=device),
-            )
-        agents.append(agent)
-    return cfg, agents
+    agents = [recipe_agent(algorithm, [], device, seed)[0] for seed in range(S)]
+    return recipe_config([f"algorithm={algorithm}"]), agents
 
 
 def separate_case(algorithm: str, S: int, device) -> Case:
@@ -93,14 +77,7 @@ def separate_case(algorithm: str, S: int, device) -> Case:
 def group_case(algorithm: str, S: int, device) -> tuple[Case, SeedGroup]:
     cfg, agents = learners(algorithm, S, device)
     model_based = agents[0].world_model is not None
-    group = SeedGroup(
-        [a.loss for a in agents],
-        lr_actor=cfg.optim.lr_actor,
-        lr_critic=cfg.optim.lr_critic,
-        tau=cfg.optim.tau,
-        world_model_losses=[a.world_model_trainer.loss for a in agents] if model_based else None,
-        lr_world_model=cfg.world_model.lr if model_based else None,
-    )
+    group = make_seed_group(cfg, agents)
     B = cfg.replay_buffer.batch_size
     data = [
         TensorDict.maybe_dense_stack(list(b.split(B))) if S > 1 else b.unsqueeze(0)

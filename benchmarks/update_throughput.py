@@ -262,12 +262,12 @@ class _Spec:
         self.action_spec = Bounded(-1.0, 1.0, (ACT_DIM,), device=device)
 
 
-def recipe_agent(algorithm: str, overrides: list[str], device):
-    """The recipe's agent for ``algorithm`` (seeded; a world model's normalisers have
-    seen random data): ``(agent, config, algorithm spec)``."""
+def recipe_agent(algorithm: str, overrides: list[str], device, seed: int = 0):
+    """The recipe's agent for ``algorithm`` (seeded with ``seed``; a world model's
+    normalisers have seen random data): ``(agent, config, algorithm spec)``."""
     cfg = recipe_config([f"algorithm={algorithm}", *overrides])
     algo = check_config(cfg)
-    torch.manual_seed(0)
+    torch.manual_seed(seed)
     agent = make_agent(cfg, _Spec(device), device)
     if agent.world_model is not None:
         agent.world_model.update_normalizers(

@@ -9,9 +9,8 @@ from test_recipe import make_cfg
 from torchrl.data import Bounded, Composite, Unbounded
 
 import torchrl_rave.modules.world_model as world_model_module
-from torchrl_rave.recipe.agent import make_agent
+from torchrl_rave.recipe.agent import make_agent, make_seed_group
 from torchrl_rave.recipe.update import agent_update
-from torchrl_rave.trainers.seed_group import SeedGroup
 
 OBS, ACT, B = 5, 2, 16
 SMALL = [
@@ -50,16 +49,7 @@ def learner(algorithm: str, seed: int):
 
 
 def make_group(agents, cfg, **kwargs):
-    model_based = agents[0].world_model is not None
-    return SeedGroup(
-        [a.loss for a in agents],
-        lr_actor=cfg.optim.lr_actor,
-        lr_critic=cfg.optim.lr_critic,
-        tau=cfg.optim.tau,
-        world_model_losses=[a.world_model_trainer.loss for a in agents] if model_based else None,
-        lr_world_model=cfg.world_model.lr if model_based else None,
-        **kwargs,
-    )
+    return make_seed_group(cfg, agents, **kwargs)
 
 
 def batch(S: int, seed: int = 0) -> TensorDict:

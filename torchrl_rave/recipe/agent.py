@@ -68,6 +68,7 @@ __all__ = [
     "make_agent",
     "make_env",
     "make_replay_buffer",
+    "make_seed_group",
     "q_at_points",
 ]
 
@@ -412,6 +413,25 @@ def make_world_model_trainer(
     if cfg.compile.enabled:
         trainer.compile(cfg.compile.mode)
     return trainer
+
+
+def make_seed_group(cfg: DictConfig, agents: list[Agent], **kwargs):
+    """One :class:`~torchrl_rave.trainers.SeedGroup` of ``agents`` (built by
+    :func:`make_agent` from ``cfg``, one per seed), with ``cfg``'s learning rates and ``tau``
+    (``kwargs``: its other keyword arguments). From then on the agents' parameters are
+    views of the group's tensors."""
+    from torchrl_rave.trainers import SeedGroup
+
+    model_based = agents[0].world_model is not None
+    return SeedGroup(
+        [a.loss for a in agents],
+        lr_actor=cfg.optim.lr_actor,
+        lr_critic=cfg.optim.lr_critic,
+        tau=cfg.optim.tau,
+        world_model_losses=[a.world_model_trainer.loss for a in agents] if model_based else None,
+        lr_world_model=cfg.world_model.lr if model_based else None,
+        **kwargs,
+    )
 
 
 def make_replay_buffer(cfg: DictConfig, device) -> TensorDictReplayBuffer:

@@ -511,7 +511,13 @@ class _StateReader:
 
 
 def saved_config(run_dir: str | Path, defaults: DictConfig | None = None) -> DictConfig:
-    """The config a run was saved with; keys added to ``defaults`` since take their defaults."""
+    """The config a run (or a seed group, ``seeds=``) was saved with; keys added to
+    ``defaults`` since take their defaults."""
+    if (Path(run_dir) / "group.json").is_file():
+        from torchrl_rave.recipe.group import group_config
+
+        saved = OmegaConf.create(group_config(run_dir))
+        return saved if defaults is None else OmegaConf.merge(defaults, saved)
     saved = OmegaConf.create(RunCheckpoint(run_dir).config())
     return saved if defaults is None else OmegaConf.merge(defaults, saved)
 

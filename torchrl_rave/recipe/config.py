@@ -205,6 +205,10 @@ def check_config(cfg: DictConfig) -> Algorithm:
         _check_ray(cfg, problems)
     _check_reward(cfg, bad, problems)
     _check_curriculum(cfg, bad, problems)
+    if "seeds" not in bad and cfg.get("seeds") is not None:
+        from torchrl_rave.recipe.group import check_group
+
+        problems += check_group(cfg)
     if problems:
         raise ConfigError(problems)
     return ALGORITHMS[cfg.algorithm]

@@ -66,6 +66,10 @@ def train(cfg: DictConfig, run_dir: str) -> dict[str, float]:
     if not cfg.resume:
         Path(run_dir).mkdir(parents=True, exist_ok=True)
     with exclusive_run(cfg.resume or run_dir):
+        if cfg.get("seeds") is not None:  # S runs in one process, updates batched
+            from torchrl_rave.recipe.group import train_group
+
+            return train_group(cfg, run_dir)
         return _train(cfg, run_dir)
 
 

@@ -441,6 +441,15 @@ class RecipeConfig:
             "`collector.total_frames`)"
         ),
     )
+    seeds: list[int] | None = key(
+        None,
+        (
+            "train these seeds as one group in one process (`ddpg`, `mve`, `steve`, "
+            "`rave`, `rave_constant`): each seed an ordinary run under `<run dir>/seed<s>/` "
+            "with `env.seed` set to it, every update batched across the seeds "
+            "(`torchrl_rave.trainers.SeedGroup`); null: one run of `env.seed`"
+        ),
+    )
     threads: int | None = key(
         None,
         (

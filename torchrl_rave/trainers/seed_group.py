@@ -55,13 +55,23 @@ __all__ = ["SeedGroup"]
 Tensor = torch.Tensor
 
 
-def _fuse(leaves: Sequence[Tensor], dim: int, parameter: bool) -> Tensor:
+# (group parameter, the learners' leaves it holds) for every fused parameter, so that
+# optimiser states can move between the group and the learners
+_Members = list[tuple[torch.nn.Parameter, list[Tensor]]]
+
+
+def _fuse(
+    leaves: Sequence[Tensor], dim: int, parameter: bool, members: _Members | None = None
+) -> Tensor:
     """One tensor holding ``leaves`` stacked along ``dim``; each leaf's storage is then
     replaced by a view of its slice (``leaf.data = group.select(dim, s)``), so whatever
-    holds the leaf reads (and writes) the group's numbers."""
+    holds the leaf reads (and writes) the group's numbers. A parameter is listed in
+    ``members`` with its learners' leaves."""
     group = torch.stack([leaf.detach() for leaf in leaves], dim).contiguous()
     if parameter:
         group = torch.nn.Parameter(group)
+        if members is not None:
+            members.append((group, list(leaves)))
     for s, leaf in enumerate(leaves):
         leaf.data = group.detach().select(dim, s)
     return group
@@ -118,7 +128,9 @@ def _run(layers: list[_Linear], x: Tensor, detach: bool = False) -> Tensor:
     return x
 
 
-def _mlp_layers(plan: TensorCall, params: Sequence[TensorDictBase], dim: int) -> tuple:
+def _mlp_layers(
+    plan: TensorCall, params: Sequence[TensorDictBase], dim: int, members: _Members
+) -> tuple:
     """The grouped linear layers of a planned TorchRL MLP (one ``"mlp"`` step, optionally
     followed by a ``"tanh"`` step) from each learner's ``params``; returns ``(layers,
     leaves, in_keys, tanh)`` with ``leaves`` the fused tensors in order."""
@@ -138,7 +150,7 @@ def _mlp_layers(plan: TensorCall, params: Sequence[TensorDictBase], dim: int) ->
             fused.append(
                 None if key is None
                 else _fuse([_leaf(p, *key) for p in params], dim, isinstance(
-                    _leaf(params[0], *key), torch.nn.Parameter))
+                    _leaf(params[0], *key), torch.nn.Parameter), members)
             )  # fmt: skip
         layers.append(_Linear(fused[0], fused[1], None, output_major=True))
         leaves += [t for t in fused if t is not None]
@@ -179,7 +191,10 @@ class _GroupedWorldModel:
     :class:`~torchrl_rave.modules.WorldModelEnsemble`'s with inputs ``[S, R, F]`` (shared
     by the members) or ``[S, N, R, F]`` (per member) and outputs ``[S, N, R, F']``."""
 
-    def __init__(self, models, draw: Callable[[Tensor, Tensor, bool], Tensor]) -> None:
+    def __init__(
+        self, models, draw: Callable[[Tensor, Tensor, bool], Tensor], members: _Members
+    ) -> None:
+        self.members = members
         self.num_models = _same("world_model.num_models", [m.num_models for m in models])
         self.draw = draw
         self.leaves: list[Tensor] = []
@@ -192,8 +207,8 @@ class _GroupedWorldModel:
         self.reward_norm = _GroupedNormalizer([m.reward_norm for m in models])
 
     def _linear(self, layers: Sequence[EnsembleLinear], activation) -> _Linear:
-        w = _fuse([layer.weight for layer in layers], 0, True)
-        b = _fuse([layer.bias for layer in layers], 0, True)
+        w = _fuse([layer.weight for layer in layers], 0, True, self.members)
+        b = _fuse([layer.bias for layer in layers], 0, True, self.members)
         self.leaves += [w, b]
         return _Linear(w, b, activation, output_major=False)
 
@@ -211,8 +226,8 @@ class _GroupedWorldModel:
             "trunk": self._mlp([h.trunk for h in heads], last_activation=True),
             "mean": self._linear([h.mean_head for h in heads], None),
             "logvar": self._linear([h.logvar_head for h in heads], None),
-            "max": _fuse([h.max_logvar for h in heads], 0, True),
-            "min": _fuse([h.min_logvar for h in heads], 0, True),
+            "max": _fuse([h.max_logvar for h in heads], 0, True, self.members),
+            "min": _fuse([h.min_logvar for h in heads], 0, True, self.members),
         }
         self.leaves += [out["max"], out["min"]]
         return out
@@ -349,6 +364,7 @@ class SeedGroup:
             raise ValueError("a seed group's critics regress with loss_function='l2'")
         self.keys = losses[0].tensor_keys
         self._estimator_setup(losses)
+        self._members: _Members = []
         self._networks_setup(losses)
         self.world_model = None
         self._bootstrap = bootstrap_indices
@@ -362,7 +378,7 @@ class SeedGroup:
                     raise ValueError("each world-model loss must train its learner's own model")
             self.wm_losses = list(world_model_losses)
             self.world_model = _GroupedWorldModel(
-                [w.world_model for w in world_model_losses], draw or _draw
+                [w.world_model for w in world_model_losses], draw or _draw, self._members
             )
             for name in ("bootstrap", "logvar_bound_coeff", "reward_coeff", "termination_coeff"):
                 _same(f"world-model loss {name}", [getattr(w, name) for w in world_model_losses])
@@ -411,19 +427,19 @@ class SeedGroup:
                 "TanhModule for the actor); this learner's networks cannot be planned"
             )
         self.actor, actor_leaves, self.actor_in_keys, tanh = _mlp_layers(
-            actor_plan, [loss.actor_network_params for loss in losses], 0
+            actor_plan, [loss.actor_network_params for loss in losses], 0, self._members
         )
         self.target_actor, _, _, _ = _mlp_layers(
-            actor_plan, [loss.target_actor_network_params for loss in losses], 0
+            actor_plan, [loss.target_actor_network_params for loss in losses], 0, self._members
         )
         if tanh is None:
             raise ValueError("a seed group's actor ends in a TanhModule onto the action box")
         self.tanh = tanh
         self.critic, critic_leaves, self.critic_in_keys, _ = _mlp_layers(
-            critic_plan, [loss.value_network_params for loss in losses], 0
+            critic_plan, [loss.value_network_params for loss in losses], 0, self._members
         )
         self.target_critic, _, _, _ = _mlp_layers(
-            critic_plan, [loss.target_value_network_params for loss in losses], 0
+            critic_plan, [loss.target_value_network_params for loss in losses], 0, self._members
         )
         self.actor_leaves, self.critic_leaves = actor_leaves, critic_leaves
         self._lerp = (
@@ -649,3 +665,58 @@ class SeedGroup:
     def load_state_dict(self, state: dict) -> None:
         for name, opt in self.optimizers().items():
             opt.load_state_dict(state[name])
+
+    def export_optimizer_states(
+        self, optimizers: Sequence[Sequence[torch.optim.Optimizer]]
+    ) -> None:
+        """Writes each seed's slice of the group's Adam states (moments and step) into that
+        learner's own optimisers (``optimizers[s]``: the ones holding its leaves), so that
+        a learner's ordinary checkpoint holds its whole state: resumed alone or in a
+        group, it continues exactly."""
+        for group_param, leaves in self._members:
+            state = self._state_of(group_param)
+            for s, leaf in enumerate(leaves):
+                for opt in optimizers[s]:
+                    if any(leaf is p for g in opt.param_groups for p in g["params"]):
+                        opt.state[leaf] = (
+                            {} if state is None else
+                            {k: v.clone() if k == "step" else v[s].clone()
+                             for k, v in state.items()}
+                        )  # fmt: skip
+
+    def import_optimizer_states(
+        self, optimizers: Sequence[Sequence[torch.optim.Optimizer]]
+    ) -> None:
+        """The inverse of :meth:`export_optimizer_states`: the group's Adam states stacked
+        from the learners' optimisers (after they loaded a checkpoint). Leaves with no
+        state anywhere (before the first step) stay without."""
+        for group_param, leaves in self._members:
+            found = []
+            for s, leaf in enumerate(leaves):
+                for opt in optimizers[s]:
+                    if leaf in opt.state and opt.state[leaf]:
+                        found.append(opt.state[leaf])
+                        break
+            if not found:
+                continue
+            if len(found) != len(leaves):
+                raise ValueError("some learners of the group have optimiser states, others none")
+            steps = {float(f["step"]) for f in found}
+            if len(steps) != 1:
+                raise ValueError(f"the learners' optimisers took different step counts: {steps}")
+            opt = self._optimizer_of(group_param)
+            opt.state[group_param] = {
+                "step": found[0]["step"].clone(),
+                **{k: torch.stack([f[k] for f in found]).to(group_param.dtype)
+                   for k in found[0] if k != "step"},
+            }  # fmt: skip
+
+    def _optimizer_of(self, param) -> torch.optim.Optimizer:
+        for opt in self.optimizers().values():
+            if any(param is p for g in opt.param_groups for p in g["params"]):
+                return opt
+        raise KeyError("a fused parameter no optimiser holds")
+
+    def _state_of(self, param) -> dict | None:
+        state = self._optimizer_of(param).state.get(param)
+        return state or None

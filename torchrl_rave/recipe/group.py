@@ -1,0 +1,367 @@
+"""The recipe with ``seeds=[...]``: S independent runs trained by one process, their updates
+batched across seeds (:class:`~torchrl_rave.trainers.SeedGroup`).
+
+Each seed is an ordinary run of its own, written to ``<run_dir>/seed<s>/``: its own train and
+evaluation envs seeded with its seed, replay buffer, world model, critics, actor, optimiser
+state and exploration noise, and its own metrics and checkpoints, which every reader of a
+run directory (``read_scalar``, ``load_policy``, the analysis scripts) takes as they are.
+The seeds advance in lockstep: every collector gives one batch, every replay buffer takes
+its own, and the batch's updates run for all seeds at once. ``<run_dir>/group.json`` holds
+the group's config; ``resume=<run_dir>`` continues every seed from the newest checkpoint
+all of them have.
+
+The learners' networks are initialised exactly as a single run with the same seed would
+initialise them. The random stream after that (exploration noise, replay sampling, the
+world model's draws) is the process's, shared by the seeds in a fixed order: a group of one
+follows a single run's stream exactly; seeds of a larger group get independent draws, not
+the ones they would get alone.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import time
+from collections import defaultdict
+from dataclasses import dataclass
+from pathlib import Path
+
+import torch
+from omegaconf import DictConfig, OmegaConf
+
+from torchrl_rave.recipe.agent import (
+    Agent,
+    make_agent,
+    make_env,
+    make_replay_buffer,
+    make_seed_group,
+    q_at_points,
+)
+from torchrl_rave.recipe.checkpoint import PREFIX, RunCheckpoint
+from torchrl_rave.recipe.collect import (
+    NonFiniteEnvOutput,
+    StopRequest,
+    check_finite,
+    guarded_batches,
+    make_collector,
+    push_policy_weights,
+    shutdown_on_error,
+    stop_run,
+)
+from torchrl_rave.recipe.config import (
+    ConfigError,
+    apply_process_settings,
+    check_resumable,
+    replay_buffer_size,
+)
+from torchrl_rave.recipe.evaluate import evaluate_agent, make_logger
+
+__all__ = ["GROUP_ALGORITHMS", "GROUP_FILE", "check_group", "group_config", "train_group"]
+
+#: the algorithms a seed group trains (the DDPG family; td3, sac and ppo run one seed a process)
+GROUP_ALGORITHMS = ("ddpg", "mve", "steve", "rave", "rave_constant")
+GROUP_FILE = "group.json"
+
+
+def check_group(cfg: DictConfig) -> list[str]:
+    """The problems of ``seeds=`` with the rest of ``cfg`` (empty when it can run)."""
+    seeds = list(cfg.seeds)
+    problems = []
+    if not seeds or len(set(seeds)) != len(seeds):
+        problems.append(f"config key seeds={seeds}: expected a list of distinct seeds")
+    if cfg.algorithm not in GROUP_ALGORITHMS:
+        problems.append(
+            f"config key seeds={seeds}: a seed group trains {', '.join(GROUP_ALGORITHMS)}; "
+            f"algorithm={cfg.algorithm} runs one seed per process (leave seeds unset)"
+        )
+    if cfg.get("curriculum") is not None and cfg.curriculum.kwarg is not None:
+        problems.append("config key seeds: a seed group does not run a curriculum")
+    reward = cfg.get("reward")
+    if reward is not None and (reward.weights is not None or reward.delayed is not None):
+        problems.append("config key seeds: a seed group does not relabel reward terms")
+    if cfg.compile.enabled:
+        problems.append("config key seeds: a seed group's update is not compiled; set "
+                        "compile.enabled=false")  # fmt: skip
+    return problems
+
+
+def group_config(run_dir: str | Path) -> dict:
+    """The config a group was last saved with (``<run_dir>/group.json``), as a dict."""
+    return json.loads((Path(run_dir) / GROUP_FILE).read_text())["config"]
+
+
+def _write_group_file(run_dir: Path, cfg: DictConfig) -> None:
+    tmp = run_dir / f".{GROUP_FILE}.tmp"
+    tmp.write_text(json.dumps({"config": OmegaConf.to_container(cfg)}, indent=1))
+    os.replace(tmp, run_dir / GROUP_FILE)
+
+
+@dataclass
+class _Seed:
+    """One seed's run: its config, directory and everything it owns."""
+
+    seed: int
+    cfg: DictConfig
+    dir: Path
+    env: object
+    eval_env: object
+    agent: Agent
+    rb: object
+    checkpoint: RunCheckpoint
+    logger: object = None
+    collector: object = None
+
+
+def _seed_config(cfg: DictConfig, seed: int) -> DictConfig:
+    one = cfg.copy()
+    one.env.seed = seed
+    one.seeds = None
+    one.resume = None
+    return one
+
+
+def _common_checkpoint(seeds: list[_Seed]) -> int:
+    """The newest frame count every seed has an undamaged checkpoint of."""
+    common = None
+    for s in seeds:
+        frames = set()
+        for path in s.checkpoint.checkpoints():
+            try:
+                s.checkpoint.verify(path)
+            except Exception:  # a damaged one is skipped, as RunCheckpoint.load does
+                continue
+            frames.add(int(path.name[len(PREFIX) :]))
+        common = frames if common is None else common & frames
+    if not common:
+        raise FileNotFoundError(
+            "no checkpoint that every seed of the group has: resume needs one "
+            f"(under {[str(s.dir) for s in seeds]})"
+        )
+    return max(common)
+
+
+def train_group(cfg: DictConfig, run_dir: str) -> dict[str, float]:
+    """Trains (or, with ``cfg.resume`` set, continues) the runs of ``cfg.seeds`` as one
+    group into ``run_dir``; returns each seed's final evaluation metrics under
+    ``seed<s>/<metric>`` and their mean over seeds under ``<metric>``."""
+    problems = check_group(cfg)
+    if problems:
+        raise ConfigError(problems)
+    cfg = cfg.copy()
+    root = Path(cfg.resume or run_dir)
+    if cfg.resume:
+        saved = OmegaConf.create(group_config(root))
+        check_resumable(cfg, saved)
+        cfg.replay_buffer.size = saved.replay_buffer.size
+    else:
+        cfg.replay_buffer.size = replay_buffer_size(cfg)
+    device = torch.device(cfg.collector.device or ("cuda" if torch.cuda.is_available() else "cpu"))
+    apply_process_settings(cfg)
+
+    seeds: list[_Seed] = []
+    for seed in cfg.seeds:
+        one = _seed_config(cfg, int(seed))
+        torch.manual_seed(one.env.seed)  # the single run's initialisation, seed by seed
+        env, eval_env = make_env(one, device), make_env(one, device)
+        agent = make_agent(one, env, device)
+        seed_dir = root / f"seed{seed}"
+        seed_dir.mkdir(parents=True, exist_ok=True)
+        seeds.append(_Seed(int(seed), one, seed_dir, env, eval_env, agent,
+                           make_replay_buffer(one, device), RunCheckpoint(seed_dir)))  # fmt: skip
+    transition = seeds[0].env.fake_tensordict()
+    for s in seeds:
+        s.checkpoint.preflight(
+            lambda block, a=s.agent: a.checkpoint_bytes(cfg.replay_buffer.size, transition, block)
+        )
+    counters = {"frames": 0, "updates": 0, "update_budget": 0.0, "curriculum_stage": 0}
+    counters.update(next_eval=cfg.eval.interval, next_checkpoint=cfg.checkpoint.interval)
+    logger_states = [{} for _ in seeds]
+    if cfg.resume:
+        frame = _common_checkpoint(seeds)
+        for i, s in enumerate(seeds):
+            own = dict(counters)
+            s.checkpoint.load(
+                path=s.checkpoint.root / f"{PREFIX}{frame:012d}",
+                restore_rng=i == 0,  # one process stream, saved alike by every seed
+                counters=own, replay_buffer=s.rb, logger=logger_states[i],
+                **s.agent.state_components(),
+            )  # fmt: skip
+            if i == 0:
+                counters.update(own)
+    for s, state in zip(seeds, logger_states, strict=True):
+        s.logger = make_logger(s.cfg, str(s.dir), state or None)
+    group = make_seed_group(cfg, [s.agent for s in seeds])
+    learner_optimizers = [_optimizers(s.agent) for s in seeds]
+    group.import_optimizer_states(learner_optimizers)
+    for s in seeds:
+        s.env.set_seed(s.seed + counters["frames"])
+
+    def save_checkpoint():
+        group.export_optimizer_states(learner_optimizers)
+        _write_group_file(root, cfg)
+        for s in seeds:
+            saved_cfg = s.cfg.copy()
+            saved_cfg.collector.total_frames = cfg.collector.total_frames
+            s.checkpoint.save(
+                counters["frames"],
+                config=OmegaConf.to_container(saved_cfg),
+                counters=dict(counters),
+                replay_buffer=s.rb,
+                logger={} if s.logger is None else s.logger.state_dict(),
+                **s.agent.state_components(),
+            )
+
+    total = cfg.collector.total_frames
+    last = [{} for _ in seeds]
+    start, frames_at_start = time.perf_counter(), counters["frames"]
+    with StopRequest() as stop, shutdown_on_error(lambda: seeds[0].collector):
+        for s in seeds:
+            s.collector = make_collector(s.cfg, s.env, s.agent.policy, device, counters["frames"])
+        streams = [
+            guarded_batches(s.collector, s.cfg, save_checkpoint, lambda: counters["frames"],
+                            str(s.dir))
+            for s in seeds
+        ]  # fmt: skip
+        t_collect = time.perf_counter()
+        for batches in zip(*streams, strict=False):
+            collect_s = time.perf_counter() - t_collect
+            data = [b.reshape(-1) for b in batches]
+            for s, d in zip(seeds, data, strict=True):
+                bad = check_finite(d)
+                if bad is not None:
+                    where = stop_run(s.collector, save_checkpoint)
+                    raise NonFiniteEnvOutput(
+                        f"{cfg.env.name} (seed {s.seed}) produced {bad} within frames "
+                        f"{counters['frames']}-{counters['frames'] + d.numel()}; {where}: fix "
+                        f"the env and rerun with resume={root}"
+                    )
+            counters["frames"] += data[0].numel()
+            t_update = time.perf_counter()
+            for s, d in zip(seeds, data, strict=True):
+                s.rb.extend(d)
+                if s.agent.world_model_trainer is not None:
+                    s.agent.world_model_trainer.extend(d)
+            acc = update_group_on_batch(cfg, seeds, group, counters, data[0].numel())
+            update_s = time.perf_counter() - t_update
+            for s in seeds:
+                push_policy_weights(s.collector, s.agent.policy)
+            frames_now = counters["frames"]
+            evaluate = frames_now >= counters["next_eval"] or frames_now >= total
+            for i, (s, d) in enumerate(zip(seeds, data, strict=True)):
+                metrics = {k: torch.stack(v).mean().item() for k, v in acc[i].items()}
+                done = d["next", "done"].squeeze(-1)
+                if done.any():
+                    metrics["train/episode_reward"] = (
+                        d["next", "episode_reward"][done].mean().item()
+                    )
+                n_updates = len(acc[i].get("train/loss_critic", ()))
+                metrics["time/collect_s"] = collect_s
+                metrics["time/update_s"] = update_s
+                if n_updates:
+                    metrics["time/updates_per_s"] = n_updates / max(update_s, 1e-9)
+                metrics["time/fps"] = (frames_now - frames_at_start) / (time.perf_counter() - start)
+                if evaluate:
+                    t_eval = time.perf_counter()
+                    s.eval_env.set_seed(s.seed + 1_000_003 + frames_now)
+                    last[i] = evaluate_agent(s.cfg, s.eval_env, s.agent)
+                    metrics.update(last[i])
+                    metrics["time/eval_s"] = time.perf_counter() - t_eval
+                metrics.update(q_at_points(s.agent.loss, cfg.logger.q_points, cfg.env.reward_scale))
+                if s.logger is not None:
+                    for key, value in metrics.items():
+                        s.logger.log_scalar(key, value, step=frames_now)
+            if evaluate:
+                while counters["next_eval"] <= frames_now:
+                    counters["next_eval"] += cfg.eval.interval
+            if frames_now >= counters["next_checkpoint"] or frames_now >= total or stop.requested:
+                while counters["next_checkpoint"] <= frames_now:
+                    counters["next_checkpoint"] += cfg.checkpoint.interval
+                save_checkpoint()
+            if stop.requested or frames_now >= total:
+                break
+            t_collect = time.perf_counter()
+    for s in seeds:
+        if s.collector is not None:
+            s.collector.shutdown()
+    if stop.requested:
+        print(f"stopped at frame {counters['frames']}; resume with resume={root}")
+    elif not last[0]:  # a group resumed from its final checkpoint
+        for i, s in enumerate(seeds):
+            s.eval_env.set_seed(s.seed + 1_000_003 + counters["frames"])
+            last[i] = evaluate_agent(s.cfg, s.eval_env, s.agent)
+    for s in seeds:
+        if s.logger is not None and hasattr(s.logger, "shutdown"):
+            s.logger.shutdown()
+    out: dict[str, float] = {}
+    for s, metrics in zip(seeds, last, strict=True):
+        out.update({f"seed{s.seed}/{k}": v for k, v in metrics.items()})
+        if metrics:
+            print(f"{cfg.algorithm} on {cfg.env.name}, seed {s.seed}: eval/return "
+                  f"{metrics['eval/return']:.1f}, run directory {s.dir}")  # fmt: skip
+    for key in last[0]:
+        out[key] = sum(m[key] for m in last) / len(last)
+    return out
+
+
+def _optimizers(agent: Agent) -> list[torch.optim.Optimizer]:
+    opts = list(agent.optimizers.values())
+    if agent.world_model_trainer is not None:
+        opts.append(agent.world_model_trainer.optimizer)
+    return opts
+
+
+def update_group_on_batch(cfg: DictConfig, seeds, group, counters: dict, n_frames: int):
+    """The updates a batch of ``n_frames`` new frames (per seed) pays for, as
+    :func:`~torchrl_rave.recipe.loop.update_on_batch` for one run: the same schedule, the
+    world model's pretraining and ``train_every``, every step one group call on the seeds'
+    own samples. Returns each seed's training metrics."""
+    acc = [defaultdict(list) for _ in seeds]
+    start_frames = max(cfg.collector.init_random_frames, cfg.replay_buffer.batch_size)
+    trainers = [s.agent.world_model_trainer for s in seeds]
+    model_based = trainers[0] is not None
+    if model_based:
+        start_frames = max(start_frames, cfg.world_model.pretrain_frames)
+    if counters["frames"] < start_frames:
+        return acc
+
+    def sample():
+        return torch.stack([s.rb.sample() for s in seeds])
+
+    def model_step():
+        out = group.update_world_model(sample())
+        for t in trainers:
+            t.updates += 1
+        return out
+
+    if model_based and not trainers[0].pretrained:
+        for _ in range(trainers[0].pretrain_updates):
+            model_step()
+        for t in trainers:
+            t.pretrained = True
+    new_frames = min(n_frames, counters["frames"] - start_frames)
+    counters["update_budget"] += cfg.optim.utd_ratio * new_frames
+    n_updates = int(counters["update_budget"])
+    counters["update_budget"] -= n_updates
+    for _ in range(n_updates):
+        if model_based:
+            if trainers[0].calls % trainers[0].train_every == 0:
+                wm = model_step()
+                for i in range(len(seeds)):
+                    for key in ("transition_nll", "transition_mse", "reward_nll", "reward_mse",
+                                "termination_bce"):  # fmt: skip
+                        acc[i][f"train/wm_{key}"].append(wm[key][i])
+            for t in trainers:
+                t.calls += 1
+        out = group.update(sample())
+        counters["updates"] += 1
+        for i in range(len(seeds)):
+            acc[i]["train/loss_critic"].append(out["loss_value"][i])
+            acc[i]["train/loss_actor"].append(out["loss_actor"][i])
+            if group.expanding:
+                keys = group.diagnostic_keys
+                acc[i]["train/rave_alpha"].append(out[keys.alpha][i].mean())
+                for h, w in enumerate(out[keys.horizon_weights][i].mean(0).unbind(-1)):
+                    acc[i][f"train/horizon_weight_h{h}"].append(w)
+                for h, v in enumerate(out[keys.horizon_variance][i].mean(0).unbind(-1)):
+                    acc[i][f"train/candidate_variance_h{h}"].append(v)
+    return acc
