@@ -33,6 +33,7 @@ from compare import cell
 from study_report import report
 
 from torchrl_rave.recipe.checkpoint import RunCheckpoint
+from torchrl_rave.recipe.group import GROUP_ALGORITHMS
 from torchrl_rave.recipe.runs import Cell, GridStopped, launch_grid, train_seconds
 from torchrl_rave.recipe.studies import load_study, result_dir, tasks
 
@@ -63,9 +64,10 @@ def commit_cell(dest: Path) -> None:
     print(f"{rel} is not committed: commit it by hand", flush=True)
 
 
-def export(run: Cell, dest: Path, started: float, commit: bool) -> None:
+def export(run: Cell, dest: Path, started: float, commit: bool, group: Cell | None = None) -> None:
     """Copies a finished cell's metric CSVs and writes its cell.json (the commit of the
-    code that ran it, read from this script's checkout); commits them."""
+    code that ran it, read from this script's checkout); commits them. A seed of a
+    ``group`` says so in its cell.json (``group``: the seeds that ran together)."""
     for csv in run.run_dir.glob("*/scalars/**/*.csv"):
         target = dest / csv.relative_to(run.run_dir)
         target.parent.mkdir(parents=True, exist_ok=True)
@@ -75,25 +77,31 @@ def export(run: Cell, dest: Path, started: float, commit: bool) -> None:
         "frames": run.frames,
         "overrides": list(run.overrides),
         "config": RunCheckpoint(run.run_dir).config(),
-        "starts": run.starts(),
+        "starts": (group or run).starts(),
         "train_s": train_seconds(run.run_dir),
         "runner_s": round(time.time() - started),
         "finished": time.strftime("%Y-%m-%d %H:%M:%S %Z"),
     }
+    if group is not None:
+        info["group"] = {"seeds": list(group.seeds)}
     (dest / "cell.json").write_text(json.dumps(info, indent=1) + "\n")
     if commit:
         commit_cell(dest)
 
 
 def interrupted(c: Cell) -> bool:
-    return any((c.run_dir / "checkpoints").glob("checkpoint-*"))
+    return c.checkpoint_frame() is not None
 
 
-def missing_cells(study, results: Path, out: Path) -> dict[Cell, Path]:
+def missing_cells(study, results: Path, out: Path, group: bool = False) -> dict[Cell, Path]:
     """The cells without a ``cell.json``, in the order they run: interrupted ones first
     (they resume), then seed by seed, every task's and algorithm's seed 0 before any
     seed 1, so that a study cut short by the budget still covers every task and
-    algorithm."""
+    algorithm. With ``group``, the missing seeds of each (task, algorithm) that a seed
+    group can train run as one cell (``seeds=[...]``); its value is then the seeds'
+    result directories by seed."""
+    if group:
+        return _missing_groups(study, results, out)
     cells = {}
     for seed in study.seeds:
         for task in tasks(study):
@@ -111,20 +119,57 @@ def missing_cells(study, results: Path, out: Path) -> dict[Cell, Path]:
     return {c: cells[c] for c in order}
 
 
+def _missing_groups(study, results: Path, out: Path) -> dict[Cell, dict[int, Path] | Path]:
+    cells = {}
+    for task in tasks(study):
+        if task.cells_from:
+            continue
+        for algorithm in study.algorithms:
+            dests = {
+                seed: result_dir(results, study, task.label, algorithm, seed)
+                for seed in study.seeds
+            }
+            missing = [s for s, d in dests.items() if not (d / "cell.json").exists()]
+            if not missing:
+                continue
+            extra = [*study.get("overrides", []), *task.overrides]
+            if algorithm not in GROUP_ALGORITHMS or len(missing) == 1:
+                for seed in missing:
+                    c = cell(out / study.name, task.env, algorithm, seed, study.frames, extra,
+                             label=task.label)  # fmt: skip
+                    cells[c] = dests[seed]
+                continue
+            overrides = (f"algorithm={algorithm}", f"env.name={task.env}",
+                         f"logger.exp_name={algorithm}", *extra,
+                         f"seeds=[{','.join(map(str, missing))}]")  # fmt: skip
+            where = (
+                out / study.name / task.label / algorithm / f"group{'-'.join(map(str, missing))}"
+            )
+            cells[Cell(where, study.frames, overrides, tuple(missing))] = {
+                s: dests[s] for s in missing
+            }
+    order = sorted(cells, key=lambda c: not interrupted(c))
+    return {c: cells[c] for c in order}
+
+
 def run(args) -> None:
     """The missing cells of every ``--config`` study, one queue in their order, sharing
     ``--jobs`` slots; interrupted cells of any of them first."""
     cells = {}
     for config in args.config:
         study = load_study(config)
-        todo = missing_cells(study, args.results, args.out)
+        todo = missing_cells(study, args.results, args.out, group=args.group)
         print(f"{study.name}: {len(todo)} cells to go, {args.jobs} at a time", flush=True)
         cells.update(todo)
     cells = {c: cells[c] for c in sorted(cells, key=lambda c: not interrupted(c))}
     started = time.time()
 
     def done(c: Cell, code: int) -> None:
-        if code == 0 and c.finished():
+        if code == 0 and c.finished() and c.seeds:  # one cell per seed of the group
+            for seed, member in zip(c.seeds, c.members(), strict=True):
+                export(member, cells[c][seed], started, args.commit, group=c)
+                print(f"done: {cells[c][seed]} (in a group of {len(c.seeds)})", flush=True)
+        elif code == 0 and c.finished():
             export(c, cells[c], started, args.commit)
             print(f"done: {cells[c]}", flush=True)
         else:
@@ -155,6 +200,12 @@ def main(argv: list[str] | None = None):
     sub.choices["run"].add_argument("--jobs", type=int, default=2)
     sub.choices["run"].add_argument("--out", type=Path, default=ROOT / "outputs" / "study")
     sub.choices["run"].add_argument("--commit", action="store_true", help="git-commit each cell")
+    sub.choices["run"].add_argument(
+        "--group",
+        action="store_true",
+        help="run the missing seeds of each (task, algorithm) as one seed group (ddpg, mve, "
+        "steve, rave, rave_constant; seeds=[...]), still one committed cell per seed",
+    )
     sub.choices["report"].add_argument("--figures", type=Path, default=ROOT / "docs" / "figures")
     args = parser.parse_args(argv)
     return run(args) if args.command == "run" else report(args)

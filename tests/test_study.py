@@ -383,3 +383,40 @@ def test_every_committed_study_makes_valid_cells(name, tmp_path):
         cfg = make_cfg(*cell.overrides, f"collector.total_frames={cell.frames}")
         check_config(cfg)
         assert cfg.collector.total_frames == loaded.frames
+
+
+def test_group_runs_a_task_and_algorithms_seeds_as_one_cell_committed_per_seed(tmp_path):
+    """``run --group``: DDPG's two seeds train in one process (seeds=[0,1]) and still give
+    one result directory per seed, each cell.json naming its own seed and the group; run
+    again, nothing is left to do."""
+    config = write_study(tmp_path, algorithms=["ddpg"], seeds=[0, 1], frames=400,
+                         overrides=[o for o in TINY if "total_frames" not in o])  # fmt: skip
+    args = ["run", "--config", str(config), "--results", str(tmp_path / "results"),
+            "--out", str(tmp_path / "runs"), "--jobs", "1", "--group"]  # fmt: skip
+    study.main(args)
+    for seed in (0, 1):
+        cell = tmp_path / "results" / "tiny" / "Hopper-v5" / "ddpg" / f"seed{seed}"
+        info = json.loads((cell / "cell.json").read_text())
+        assert info["group"] == {"seeds": [0, 1]}
+        assert info["config"]["env"]["seed"] == seed and info["frames"] == 400
+        assert [s["from_frame"] for s in info["starts"]] == [0]
+        assert read_scalar(cell, "eval/return")[0].tolist() == [200, 400]
+        assert not list(cell.rglob("checkpoint*"))
+    assert (tmp_path / "runs" / "tiny" / "Hopper-v5" / "ddpg" / "group0-1" / "group.json").exists()
+    study.main(args)
+
+
+def test_group_leaves_what_a_group_cannot_train_as_single_cells(tmp_path, monkeypatch):
+    seen = []
+    monkeypatch.setattr(study, "launch_grid", lambda script, todo, jobs, **kw: seen.extend(todo))
+    config = write_study(tmp_path, algorithms=["rave", "td3"], seeds=[0, 1, 2])
+    done = tmp_path / "results" / "tiny" / "Hopper-v5" / "rave" / "seed1"
+    done.mkdir(parents=True)
+    (done / "cell.json").write_text("{}")
+    study.main(["run", "--config", str(config), "--results", str(tmp_path / "results"),
+                "--out", str(tmp_path / "runs"), "--group"])  # fmt: skip
+    assert [("/".join(c.run_dir.parts[-2:]), c.seeds) for c in seen] == [
+        ("rave/group0-2", (0, 2)),  # the missing seeds only
+        ("td3/seed0", ()), ("td3/seed1", ()), ("td3/seed2", ()),
+    ]  # fmt: skip
+    assert "seeds=[0,2]" in seen[0].overrides

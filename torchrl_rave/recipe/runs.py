@@ -172,10 +172,33 @@ class Cell:
     run_dir: Path
     frames: int
     overrides: tuple[str, ...] = field(default_factory=tuple)
+    #: a seed group (``seeds=[...]`` among the overrides): its seeds, each run under
+    #: ``run_dir/seed<s>``; empty for an ordinary run
+    seeds: tuple[int, ...] = ()
+
+    def members(self) -> list[Cell]:
+        """A group's runs, one per seed (an ordinary cell is its own only member)."""
+        if not self.seeds:
+            return [self]
+        return [Cell(self.run_dir / f"seed{s}", self.frames, self.overrides) for s in self.seeds]
 
     def finished(self) -> bool:
-        """The run evaluated at its last frame (it always does, then checkpoints)."""
+        """The run (every run of a group) evaluated at its last frame (it always does,
+        then checkpoints)."""
+        if self.seeds:
+            return all(m.finished() for m in self.members())
         return value_logged_at(self.run_dir, "eval/return", self.frames) is not None
+
+    def checkpoint_frame(self) -> int | None:
+        """The frame of the newest checkpoint (for a group, the oldest of its seeds'
+        newest ones), or ``None`` when some run has none."""
+        frames = []
+        for m in self.members():
+            saved = RunCheckpoint(m.run_dir).checkpoints()
+            if not saved:
+                return None
+            frames.append(int(saved[-1].name.removeprefix(PREFIX)))
+        return min(frames)
 
     def starts(self) -> list[dict]:
         """What :func:`launch_grid` wrote down at each start of this run, oldest first:
@@ -196,10 +219,10 @@ def _start_cell(script: Path, cell: Cell, record: dict) -> subprocess.Popen:
         "logger.progress_bar=false",
         f"hydra.run.dir={cell.run_dir}",
     ]
-    saved = RunCheckpoint(cell.run_dir).checkpoints()
-    if saved:
+    frame = cell.checkpoint_frame()
+    if frame is not None:
         args.append(f"resume={cell.run_dir}")  # an interrupted cell continues
-    frame = int(saved[-1].name.removeprefix(PREFIX)) if saved else 0
+    frame = frame or 0
     cell.run_dir.mkdir(parents=True, exist_ok=True)
     when = time.strftime("%Y-%m-%d %H:%M:%S %Z")
     with open(cell.run_dir / STARTS, "a") as f:
