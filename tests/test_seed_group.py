@@ -23,7 +23,7 @@ SMALL = [
     "world_model.termination_cells=16",
     "optim.tau=0.5",  # targets move visibly: a wrong soft update shows
 ]
-ALGORITHMS = ["ddpg", "mve", "steve", "rave", "rave_constant"]
+ALGORITHMS = ["ddpg", "mve", "steve", "rave", "rave_constant", "td3"]
 
 
 class Spec:
@@ -82,6 +82,11 @@ class Recorder:
         self.noise.append(eps)
         return mean + eps * (0.5 * logvar).exp()
 
+    def policy_noise(self, action):
+        eps = torch.randn_like(action)
+        self.noise.append(eps)
+        return eps
+
     def bootstrap(self, B_, S):
         idx = torch.randint(B_, (3, S, B_))
         self.indices.append(idx)
@@ -98,6 +103,8 @@ def replay(monkeypatch, agent, recorder: Recorder, s: int) -> None:
         return mean + next(noise).reshape(mean.shape) * (0.5 * logvar).exp()
 
     monkeypatch.setattr(world_model_module, "_draw", draw)
+    if agent.world_model is None:  # TD3's target smoothing noise: its only draw
+        monkeypatch.setattr(torch, "randn_like", lambda x: next(noise).reshape(x.shape))
     if agent.world_model_trainer is not None:
         idx = iter([i[:, s] for i in recorder.indices])
         monkeypatch.setattr(agent.world_model_trainer.loss, "bootstrap_indices",
@@ -121,13 +128,16 @@ def test_each_seed_is_its_single_update(algorithm, S, monkeypatch):
     singles = [learner(algorithm, s)[1] for s in range(S)]
     grouped = [learner(algorithm, s)[1] for s in range(S)]
     rec = Recorder()
-    group = make_group(grouped, cfg, draw=rec.draw, bootstrap_indices=rec.bootstrap)
+    group = make_group(grouped, cfg, draw=rec.draw, bootstrap_indices=rec.bootstrap,
+                       policy_noise_draw=rec.policy_noise)  # fmt: skip
+    # TD3 delays its actor: the second update steps the critics only
+    step_actor = [True, algorithm != "td3"]
     data = [batch(S, seed=i) for i in range(2)]
     outs, wm_outs, group_grads = [], [], []
     for d in data:
         if group.world_model is not None:
             wm_outs.append(group.update_world_model(d))
-        outs.append(group.update(d))
+        outs.append(group.update(d, step_actor[len(outs)]))
         group_grads.append(grads(group.actor_leaves + group.critic_leaves))
     for s, agent in enumerate(singles):
         replay(monkeypatch, agent, rec, s)
@@ -138,18 +148,24 @@ def test_each_seed_is_its_single_update(algorithm, S, monkeypatch):
                 for key in ("loss_transition", "loss_reward", "loss_termination",
                             "transition_nll", "reward_mse", "termination_accuracy"):  # fmt: skip
                     close(wm[key], wm_outs[i][key][s], f"seed {s} step {i} {key}")
-            out = agent_update(loss, agent.optimizers, agent.target_updater, d[s].clone())
+            out = agent_update(
+                loss, agent.optimizers, agent.target_updater, d[s].clone(), step_actor[i]
+            )
             got = outs[i][s]
+            names = {"loss_value": "loss_qvalue" if algorithm == "td3" else "loss_value"}
             for key in ("loss_value", "loss_actor", "target_value", "pred_value",
                         "state_action_value_actor"):  # fmt: skip
-                close(got[key], out[key], f"seed {s} step {i} {key}")
+                close(got[key], out[names.get(key, key)], f"seed {s} step {i} {key}")
             if group.expanding:
                 diag = loss.value_estimator.diagnostics
                 for key in diag.keys():  # noqa: SIM118 (a TensorDict)
                     close(got[key], diag[key], f"seed {s} step {i} {key}")
             # gradients: the group's leaves hold seed s at dim 0
+            critics = (
+                loss.qvalue_network_params if algorithm == "td3" else loss.value_network_params
+            )
             leaves = [*loss.actor_network_params.values(True, True),
-                      *loss.value_network_params.values(True, True)]  # fmt: skip
+                      *critics.values(True, True)]  # fmt: skip
             single = grads([p for p in leaves if p.requires_grad])  # not the action bounds
             for j, (g_single, g_group) in enumerate(zip(single, group_grads[i], strict=True)):
                 close(g_group[s], g_single, f"grad {j}")

@@ -58,8 +58,8 @@ from torchrl_rave.recipe.evaluate import evaluate_agent, make_logger
 
 __all__ = ["GROUP_ALGORITHMS", "GROUP_FILE", "check_group", "group_config", "train_group"]
 
-#: the algorithms a seed group trains (the DDPG family; td3, sac and ppo run one seed a process)
-GROUP_ALGORITHMS = ("ddpg", "mve", "steve", "rave", "rave_constant")
+#: the algorithms a seed group trains (sac and ppo run one seed per process)
+GROUP_ALGORITHMS = ("ddpg", "mve", "steve", "rave", "rave_constant", "td3")
 GROUP_FILE = "group.json"
 
 
@@ -342,6 +342,7 @@ def update_group_on_batch(cfg: DictConfig, seeds, group, counters: dict, n_frame
     counters["update_budget"] += cfg.optim.utd_ratio * new_frames
     n_updates = int(counters["update_budget"])
     counters["update_budget"] -= n_updates
+    policy_delay = cfg.td3.policy_delay if cfg.algorithm == "td3" else 1
     for _ in range(n_updates):
         if model_based:
             if trainers[0].calls % trainers[0].train_every == 0:
@@ -352,11 +353,13 @@ def update_group_on_batch(cfg: DictConfig, seeds, group, counters: dict, n_frame
                         acc[i][f"train/wm_{key}"].append(wm[key][i])
             for t in trainers:
                 t.calls += 1
-        out = group.update(sample())
+        step_actor = counters["updates"] % policy_delay == 0
+        out = group.update(sample(), step_actor)
         counters["updates"] += 1
         for i in range(len(seeds)):
             acc[i]["train/loss_critic"].append(out["loss_value"][i])
-            acc[i]["train/loss_actor"].append(out["loss_actor"][i])
+            if step_actor:
+                acc[i]["train/loss_actor"].append(out["loss_actor"][i])
             if group.expanding:
                 keys = group.diagnostic_keys
                 acc[i]["train/rave_alpha"].append(out[keys.alpha][i].mean())

@@ -445,7 +445,8 @@ class RecipeConfig:
         None,
         (
             "train these seeds as one group in one process (`ddpg`, `mve`, `steve`, "
-            "`rave`, `rave_constant`): each seed an ordinary run under `<run dir>/seed<s>/` "
+            "`rave`, `rave_constant`, `td3`): each seed an ordinary run under "
+            "`<run dir>/seed<s>/` "
             "with `env.seed` set to it, every update batched across the seeds "
             "(`torchrl_rave.trainers.SeedGroup`); null: one run of `env.seed`"
         ),

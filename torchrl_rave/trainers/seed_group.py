@@ -42,6 +42,7 @@ from collections.abc import Callable, Sequence
 import torch
 from tensordict import TensorDict, TensorDictBase
 from torch.nn import functional as F
+from torchrl.objectives import TD3Loss
 
 from torchrl_rave.modules.ensemble import EnsembleLinear, EnsembleMLP, inplace_activation
 from torchrl_rave.modules.tensor_call import TensorCall, _leaf
@@ -346,19 +347,29 @@ class SeedGroup:
         lr_world_model: float | None = None,
         draw: Callable[[Tensor, Tensor, bool], Tensor] | None = None,
         bootstrap_indices: Callable[[int, int], Tensor] | None = None,
+        policy_noise_draw: Callable[[Tensor], Tensor] | None = None,
     ) -> None:
         losses = list(losses)
         if not losses:
             raise ValueError("a seed group needs at least one learner")
-        for loss in losses:
-            if not isinstance(loss, EnsembleDDPGLoss):
-                raise TypeError(
-                    f"a seed group runs EnsembleDDPGLoss learners (ddpg, mve, steve, rave), "
-                    f"got {type(loss).__name__}"
-                )
+        kinds = {type(loss) for loss in losses}
+        if len(kinds) != 1 or not issubclass(kinds.pop(), (EnsembleDDPGLoss, TD3Loss)):
+            raise TypeError(
+                "a seed group runs EnsembleDDPGLoss learners (ddpg, mve, steve, rave) or "
+                f"TD3Loss ones, all of one kind; got {sorted(type(x).__name__ for x in losses)}"
+            )
         self.num_seeds = S = len(losses)
         self.losses = losses
-        self.num_critics = _same("num_value_nets", [loss.num_value_nets for loss in losses])
+        self.td3 = isinstance(losses[0], TD3Loss)
+        self._critic = "qvalue_network" if self.td3 else "value_network"
+        count = "num_qvalue_nets" if self.td3 else "num_value_nets"
+        self.num_critics = _same(count, [getattr(loss, count) for loss in losses])
+        if self.td3:
+            for name in ("policy_noise", "noise_clip"):
+                setattr(self, name, _same(name, [float(getattr(x, name)) for x in losses]))
+            _same("action bounds", [(x.min_action.tolist(), x.max_action.tolist()) for x in losses])
+            self.min_action, self.max_action = losses[0].min_action, losses[0].max_action
+        self._noise = policy_noise_draw or torch.randn_like
         _same("loss_function", [loss.loss_function for loss in losses])
         if losses[0].loss_function != "l2":
             raise ValueError("a seed group's critics regress with loss_function='l2'")
@@ -420,7 +431,7 @@ class SeedGroup:
 
     def _networks_setup(self, losses) -> None:
         actor_plan = TensorCall.plan(losses[0].actor_network)
-        critic_plan = TensorCall.plan(losses[0].value_network, stacked=True)
+        critic_plan = TensorCall.plan(getattr(losses[0], self._critic), stacked=True)
         if actor_plan is None or critic_plan is None:
             raise ValueError(
                 "a seed group runs actors and critics made of TorchRL MLPs (and a final "
@@ -436,10 +447,13 @@ class SeedGroup:
             raise ValueError("a seed group's actor ends in a TanhModule onto the action box")
         self.tanh = tanh
         self.critic, critic_leaves, self.critic_in_keys, _ = _mlp_layers(
-            critic_plan, [loss.value_network_params for loss in losses], 0, self._members
+            critic_plan, [getattr(x, f"{self._critic}_params") for x in losses], 0, self._members
         )
         self.target_critic, _, _, _ = _mlp_layers(
-            critic_plan, [loss.target_value_network_params for loss in losses], 0, self._members
+            critic_plan,
+            [getattr(x, f"target_{self._critic}_params") for x in losses],
+            0,
+            self._members,
         )
         self.actor_leaves, self.critic_leaves = actor_leaves, critic_leaves
         self._lerp = (
@@ -491,7 +505,13 @@ class SeedGroup:
         (per sample, under the estimator's key names)."""
         obs, action, nxt, reward, terminated = self._read(batch)
         if not self.expanding:
-            next_q = self._q(self.target_critic, nxt, self._policy(self.target_actor, nxt))
+            next_action = self._policy(self.target_actor, nxt)
+            if self.td3:  # target policy smoothing, drawn as TD3Loss draws it
+                noise = (self._noise(action) * self.policy_noise).clamp(
+                    -self.noise_clip, self.noise_clip
+                )
+                next_action = (next_action + noise).clamp(self.min_action, self.max_action)
+            next_q = self._q(self.target_critic, nxt, next_action)
             not_terminated = (~terminated).int()
             return reward + self.gamma * not_terminated * next_q.min(1)[0], {}
         return self._expansion_target(obs, action, nxt, reward, terminated)
@@ -563,7 +583,8 @@ class SeedGroup:
         current = self._q(self.critic, obs, action)  # [S, K, B]
         loss_value = (current - target.unsqueeze(1)).pow(2).sum(1).mean(-1)  # [S]
         q_actor = self._q(self.critic, obs, self._policy(self.actor, obs), detach=True)
-        loss_actor = (-q_actor.mean(1)).mean(-1)  # [S]
+        # the K critics' mean (EnsembleDDPGLoss), the first critic's value (TD3Loss)
+        loss_actor = (-(q_actor[:, 0] if self.td3 else q_actor.mean(1))).mean(-1)  # [S]
         self.actor_optimizer.zero_grad()
         self.critic_optimizer.zero_grad()
         (loss_value.sum() + loss_actor.sum()).backward()
