@@ -204,7 +204,7 @@ def main(argv: list[str] | None = None):
         "--group",
         action="store_true",
         help="run the missing seeds of each (task, algorithm) as one seed group (ddpg, mve, "
-        "steve, rave, rave_constant, td3; seeds=[...]), still one committed cell per seed",
+        "steve, rave, rave_constant, td3, sac; seeds=[...]), still one committed cell per seed",
     )
     sub.choices["report"].add_argument("--figures", type=Path, default=ROOT / "docs" / "figures")
     args = parser.parse_args(argv)

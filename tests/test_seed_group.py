@@ -23,7 +23,7 @@ SMALL = [
     "world_model.termination_cells=16",
     "optim.tau=0.5",  # targets move visibly: a wrong soft update shows
 ]
-ALGORITHMS = ["ddpg", "mve", "steve", "rave", "rave_constant", "td3"]
+ALGORITHMS = ["ddpg", "mve", "steve", "rave", "rave_constant", "td3", "sac"]
 
 
 class Spec:
@@ -105,6 +105,9 @@ def replay(monkeypatch, agent, recorder: Recorder, s: int) -> None:
     monkeypatch.setattr(world_model_module, "_draw", draw)
     if agent.world_model is None:  # TD3's target smoothing noise: its only draw
         monkeypatch.setattr(torch, "randn_like", lambda x: next(noise).reshape(x.shape))
+    # SAC's tanh-Gaussian draws (torch's Normal.rsample)
+    monkeypatch.setattr(torch.distributions.normal, "_standard_normal",
+                        lambda shape, dtype, device: next(noise).reshape(shape))  # fmt: skip
     if agent.world_model_trainer is not None:
         idx = iter([i[:, s] for i in recorder.indices])
         monkeypatch.setattr(agent.world_model_trainer.loss, "bootstrap_indices",
@@ -128,6 +131,14 @@ def test_each_seed_is_its_single_update(algorithm, S, monkeypatch):
     singles = [learner(algorithm, s)[1] for s in range(S)]
     grouped = [learner(algorithm, s)[1] for s in range(S)]
     rec = Recorder()
+    normal = torch.distributions.normal._standard_normal
+
+    def standard_normal(shape, dtype, device):  # the group's SAC draws, kept
+        eps = normal(shape, dtype=dtype, device=device)
+        rec.noise.append(eps)
+        return eps
+
+    monkeypatch.setattr(torch.distributions.normal, "_standard_normal", standard_normal)
     group = make_group(grouped, cfg, draw=rec.draw, bootstrap_indices=rec.bootstrap,
                        policy_noise_draw=rec.policy_noise)  # fmt: skip
     # TD3 delays its actor: the second update steps the critics only
@@ -139,6 +150,7 @@ def test_each_seed_is_its_single_update(algorithm, S, monkeypatch):
             wm_outs.append(group.update_world_model(d))
         outs.append(group.update(d, step_actor[len(outs)]))
         group_grads.append(grads(group.actor_leaves + group.critic_leaves))
+    monkeypatch.undo()
     for s, agent in enumerate(singles):
         replay(monkeypatch, agent, rec, s)
         loss = agent.loss
@@ -152,18 +164,21 @@ def test_each_seed_is_its_single_update(algorithm, S, monkeypatch):
                 loss, agent.optimizers, agent.target_updater, d[s].clone(), step_actor[i]
             )
             got = outs[i][s]
-            names = {"loss_value": "loss_qvalue" if algorithm == "td3" else "loss_value"}
-            for key in ("loss_value", "loss_actor", "target_value", "pred_value",
-                        "state_action_value_actor"):  # fmt: skip
+            qvalue = algorithm in ("td3", "sac")
+            names = {"loss_value": "loss_qvalue" if qvalue else "loss_value"}
+            keys = ["loss_value", "loss_actor"]
+            if algorithm == "sac":  # SACLoss reports its temperature and entropy instead
+                keys += ["loss_alpha", "alpha", "entropy"]
+            else:
+                keys += ["target_value", "pred_value", "state_action_value_actor"]
+            for key in keys:
                 close(got[key], out[names.get(key, key)], f"seed {s} step {i} {key}")
             if group.expanding:
                 diag = loss.value_estimator.diagnostics
                 for key in diag.keys():  # noqa: SIM118 (a TensorDict)
                     close(got[key], diag[key], f"seed {s} step {i} {key}")
             # gradients: the group's leaves hold seed s at dim 0
-            critics = (
-                loss.qvalue_network_params if algorithm == "td3" else loss.value_network_params
-            )
+            critics = loss.qvalue_network_params if qvalue else loss.value_network_params
             leaves = [*loss.actor_network_params.values(True, True),
                       *critics.values(True, True)]  # fmt: skip
             single = grads([p for p in leaves if p.requires_grad])  # not the action bounds

@@ -34,9 +34,9 @@ def scalars(exp_dir: Path) -> dict[str, list[tuple[int, float]]]:
     return out
 
 
-@pytest.mark.parametrize("algorithm", ["ddpg", "td3", "rave"])
+@pytest.mark.parametrize("algorithm", ["ddpg", "td3", "sac", "rave"])
 def test_a_group_of_one_is_the_single_run(algorithm, tmp_path):
-    """``seeds=[3]`` logs what ``env.seed=3`` logs. DDPG and TD3 bit for bit; the model-based
+    """``seeds=[3]`` logs what ``env.seed=3`` logs. DDPG, TD3 and SAC bit for bit; the model-based
     update batches its world-model and critic calls differently (one ``baddbmm`` over seeds
     x members where the single learner broadcasts), so its float rounding differs, by
     parts in 1e-6 after a few hundred updates: the same frames, returns and episode
@@ -82,8 +82,8 @@ def test_each_seed_is_an_ordinary_run(tmp_path):
 
 
 def test_refuses_what_a_group_cannot_run():
-    with pytest.raises(ConfigError, match="algorithm=sac runs one seed per process"):
-        train(make_cfg(*PENDULUM, "algorithm=sac", "seeds=[0,1]"), "unused")
+    with pytest.raises(ConfigError, match="algorithm=ppo runs one seed per process"):
+        train(make_cfg(*PENDULUM, "algorithm=ppo", "seeds=[0,1]"), "unused")
     with pytest.raises(ConfigError, match="distinct seeds"):
         train(make_cfg(*PENDULUM, "algorithm=ddpg", "seeds=[1,1]"), "unused")
 

@@ -409,7 +409,7 @@ def test_group_runs_a_task_and_algorithms_seeds_as_one_cell_committed_per_seed(t
 def test_group_leaves_what_a_group_cannot_train_as_single_cells(tmp_path, monkeypatch):
     seen = []
     monkeypatch.setattr(study, "launch_grid", lambda script, todo, jobs, **kw: seen.extend(todo))
-    config = write_study(tmp_path, algorithms=["rave", "sac"], seeds=[0, 1, 2])
+    config = write_study(tmp_path, algorithms=["rave", "ppo"], seeds=[0, 1, 2])
     done = tmp_path / "results" / "tiny" / "Hopper-v5" / "rave" / "seed1"
     done.mkdir(parents=True)
     (done / "cell.json").write_text("{}")
@@ -417,6 +417,6 @@ def test_group_leaves_what_a_group_cannot_train_as_single_cells(tmp_path, monkey
                 "--out", str(tmp_path / "runs"), "--group"])  # fmt: skip
     assert [("/".join(c.run_dir.parts[-2:]), c.seeds) for c in seen] == [
         ("rave/group0-2", (0, 2)),  # the missing seeds only
-        ("sac/seed0", ()), ("sac/seed1", ()), ("sac/seed2", ()),
+        ("ppo/seed0", ()), ("ppo/seed1", ()), ("ppo/seed2", ()),
     ]  # fmt: skip
     assert "seeds=[0,2]" in seen[0].overrides

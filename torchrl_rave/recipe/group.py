@@ -58,8 +58,8 @@ from torchrl_rave.recipe.evaluate import evaluate_agent, make_logger
 
 __all__ = ["GROUP_ALGORITHMS", "GROUP_FILE", "check_group", "group_config", "train_group"]
 
-#: the algorithms a seed group trains (sac and ppo run one seed per process)
-GROUP_ALGORITHMS = ("ddpg", "mve", "steve", "rave", "rave_constant", "td3")
+#: the algorithms a seed group trains (ppo runs one seed per process)
+GROUP_ALGORITHMS = ("ddpg", "mve", "steve", "rave", "rave_constant", "td3", "sac")
 GROUP_FILE = "group.json"
 
 
@@ -360,6 +360,8 @@ def update_group_on_batch(cfg: DictConfig, seeds, group, counters: dict, n_frame
             acc[i]["train/loss_critic"].append(out["loss_value"][i])
             if step_actor:
                 acc[i]["train/loss_actor"].append(out["loss_actor"][i])
+            if group.sac:  # SACLoss's temperature
+                acc[i]["train/sac_temperature"].append(out["alpha"][i])
             if group.expanding:
                 keys = group.diagnostic_keys
                 acc[i]["train/rave_alpha"].append(out[keys.alpha][i].mean())

@@ -445,7 +445,7 @@ class RecipeConfig:
         None,
         (
             "train these seeds as one group in one process (`ddpg`, `mve`, `steve`, "
-            "`rave`, `rave_constant`, `td3`): each seed an ordinary run under "
+            "`rave`, `rave_constant`, `td3`, `sac`; not `ppo`): each seed an ordinary run under "
             "`<run dir>/seed<s>/` "
             "with `env.seed` set to it, every update batched across the seeds "
             "(`torchrl_rave.trainers.SeedGroup`); null: one run of `env.seed`"

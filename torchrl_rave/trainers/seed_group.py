@@ -41,11 +41,13 @@ from collections.abc import Callable, Sequence
 
 import torch
 from tensordict import TensorDict, TensorDictBase
+from tensordict.nn import NormalParamExtractor
 from torch.nn import functional as F
-from torchrl.objectives import TD3Loss
+from torchrl.objectives import SACLoss, TD3Loss
+from torchrl.objectives.sac import compute_rsample_log_prob
 
 from torchrl_rave.modules.ensemble import EnsembleLinear, EnsembleMLP, inplace_activation
-from torchrl_rave.modules.tensor_call import TensorCall, _leaf
+from torchrl_rave.modules.tensor_call import TensorCall, _leaf, _linear_layers
 from torchrl_rave.objectives import functional as VF
 from torchrl_rave.objectives.ensemble_ddpg import EnsembleDDPGLoss
 from torchrl_rave.objectives.value_expansion import ValueExpansionEstimator
@@ -160,6 +162,31 @@ def _mlp_layers(
         _, _, _, (module, _, low, high), rescale, clamp = plan.steps[1]
         tanh = (getattr(module, low), getattr(module, high), rescale, clamp)
     return layers, leaves, list(in_keys), tanh
+
+
+def _sac_actor_plan(loss) -> TensorCall:
+    """A plan of the MLP inside the recipe's SAC actor (``ProbabilisticActor`` over
+    ``TensorDictModule(Sequential(MLP, NormalParamExtractor))``): its linear layers, keyed
+    as in the loss's ``actor_network_params``; the extractor and the tanh-Gaussian are
+    applied by the group itself."""
+    actor = loss.actor_network
+    try:
+        head = actor.module[0].module
+        mlp, extractor = head[0], head[1]
+    except (AttributeError, IndexError, TypeError):
+        raise ValueError(
+            "a seed group's SAC actor is the recipe's (MLP + NormalParamExtractor)"
+        ) from None
+    if not isinstance(extractor, NormalParamExtractor):
+        raise ValueError("a seed group's SAC actor ends in a NormalParamExtractor")
+    entries = _linear_layers(mlp, ("module", "0", "module", "0"))
+    if entries is None:
+        raise ValueError("a seed group's SAC actor is a plain MLP")
+    entries = [
+        (is_linear, layer, *(TensorCall._param_keys(key, layer) if is_linear else ()))
+        for key, is_linear, layer in entries
+    ]
+    return TensorCall([("mlp", list(actor.module[0].in_keys), "loc_scale", entries)], [])
 
 
 class _GroupedNormalizer:
@@ -348,21 +375,33 @@ class SeedGroup:
         draw: Callable[[Tensor, Tensor, bool], Tensor] | None = None,
         bootstrap_indices: Callable[[int, int], Tensor] | None = None,
         policy_noise_draw: Callable[[Tensor], Tensor] | None = None,
+        lr_alpha: float | None = None,
     ) -> None:
         losses = list(losses)
         if not losses:
             raise ValueError("a seed group needs at least one learner")
         kinds = {type(loss) for loss in losses}
-        if len(kinds) != 1 or not issubclass(kinds.pop(), (EnsembleDDPGLoss, TD3Loss)):
+        if len(kinds) != 1 or not issubclass(kinds.pop(), (EnsembleDDPGLoss, TD3Loss, SACLoss)):
             raise TypeError(
-                "a seed group runs EnsembleDDPGLoss learners (ddpg, mve, steve, rave) or "
-                f"TD3Loss ones, all of one kind; got {sorted(type(x).__name__ for x in losses)}"
+                "a seed group runs EnsembleDDPGLoss learners (ddpg, mve, steve, rave), TD3Loss "
+                f"or SACLoss ones, all of one kind; got {sorted(type(x).__name__ for x in losses)}"
             )
         self.num_seeds = S = len(losses)
         self.losses = losses
         self.td3 = isinstance(losses[0], TD3Loss)
-        self._critic = "qvalue_network" if self.td3 else "value_network"
-        count = "num_qvalue_nets" if self.td3 else "num_value_nets"
+        self.sac = isinstance(losses[0], SACLoss)
+        if self.sac:
+            for loss in losses:
+                if loss._version != 2 or loss.skip_done_states or loss.delay_actor:
+                    raise ValueError("a seed group runs SACLoss without a value network, "
+                                     "skip_done_states or a target actor (the recipe's)")  # fmt: skip
+                if loss.min_log_alpha is not None or loss.max_log_alpha is not None:
+                    raise ValueError("a seed group's SACLoss has no log-alpha bounds")
+            self.target_entropy = float(
+                _same("target_entropy", [float(x.target_entropy) for x in losses])
+            )
+        self._critic = "qvalue_network" if (self.td3 or self.sac) else "value_network"
+        count = "num_qvalue_nets" if (self.td3 or self.sac) else "num_value_nets"
         self.num_critics = _same(count, [getattr(loss, count) for loss in losses])
         if self.td3:
             for name in ("policy_noise", "noise_clip"):
@@ -402,6 +441,13 @@ class SeedGroup:
         self.tau = 1.0 - (1.0 - float(tau))
         self.actor_optimizer = torch.optim.Adam(self.actor_leaves, lr=lr_actor, fused=True)
         self.critic_optimizer = torch.optim.Adam(self.critic_leaves, lr=lr_critic, fused=True)
+        if self.sac:
+            if lr_alpha is None:
+                raise ValueError("a SAC seed group needs lr_alpha")
+            self.log_alpha = _fuse([x.log_alpha for x in losses], 0, True, self._members)
+            self.alpha_optimizer = torch.optim.Adam([self.log_alpha], lr=lr_alpha, fused=True)
+            head = losses[0].actor_network.module
+            self._extractor, self._dist = head[0].module[1], head[1]
 
     # ----------------------------------------------------------------- set-up
     def _estimator_setup(self, losses) -> None:
@@ -437,14 +483,18 @@ class SeedGroup:
                 "a seed group runs actors and critics made of TorchRL MLPs (and a final "
                 "TanhModule for the actor); this learner's networks cannot be planned"
             )
+        if self.sac:
+            actor_plan = _sac_actor_plan(losses[0])
         self.actor, actor_leaves, self.actor_in_keys, tanh = _mlp_layers(
             actor_plan, [loss.actor_network_params for loss in losses], 0, self._members
         )
-        self.target_actor, _, _, _ = _mlp_layers(
-            actor_plan, [loss.target_actor_network_params for loss in losses], 0, self._members
-        )
-        if tanh is None:
-            raise ValueError("a seed group's actor ends in a TanhModule onto the action box")
+        self.target_actor = []  # SAC's next actions come from the current actor
+        if not self.sac:
+            self.target_actor, _, _, _ = _mlp_layers(
+                actor_plan, [x.target_actor_network_params for x in losses], 0, self._members
+            )
+            if tanh is None:
+                raise ValueError("a seed group's actor ends in a TanhModule onto the action box")
         self.tanh = tanh
         self.critic, critic_leaves, self.critic_in_keys, _ = _mlp_layers(
             critic_plan, [getattr(x, f"{self._critic}_params") for x in losses], 0, self._members
@@ -459,7 +509,7 @@ class SeedGroup:
         self._lerp = (
             [t for layer in self.target_actor + self.target_critic
              for t in (layer.weight, layer.bias) if t is not None],
-            [t.detach() for t in actor_leaves + critic_leaves],
+            [t.detach() for t in ([] if self.sac else actor_leaves) + critic_leaves],
         )  # fmt: skip
 
     # ---------------------------------------------------------------- networks
@@ -571,13 +621,64 @@ class SeedGroup:
         return target, diagnostics
 
     # ----------------------------------------------------------------- updates
+    def _sac_action(self, obs: Tensor) -> tuple[Tensor, Tensor]:
+        """A reparameterised tanh-Gaussian action ``[S, B, A]`` and its log-probability
+        ``[S, B]``, drawn as the recipe's SAC actor draws them (its own extractor and
+        distribution module, one normal draw for the group)."""
+        loc, scale = self._extractor(_run(self.actor, obs))
+        dist = self._dist.get_dist(TensorDict(loc=loc, scale=scale, batch_size=loc.shape[:-1]))
+        return compute_rsample_log_prob(dist)
+
+    def _update_sac(self, batch: TensorDictBase) -> TensorDict:
+        """SACLoss (v2) for every seed: the critics' target from the current actor's next
+        action less ``alpha log pi`` under the target critics' minimum, the actor's
+        ``alpha log pi - min_k Q_k`` and the temperature's loss, in SACLoss's order."""
+        obs, action, nxt, reward, terminated = self._read(batch)
+        alpha = self.log_alpha.detach().exp()  # [S]
+        with torch.no_grad():
+            next_action, next_log_prob = self._sac_action(nxt)
+            next_q = self._q(self.target_critic, nxt, next_action)  # [S, K, B]
+            next_value = (next_q - alpha.view(-1, 1, 1) * next_log_prob.unsqueeze(1)).min(1)[0]
+            target = reward + self.gamma * (~terminated).int() * next_value
+        current = self._q(self.critic, obs, action)
+        loss_value = (current - target.unsqueeze(1)).pow(2).sum(1).mean(-1)
+        new_action, log_prob = self._sac_action(obs)
+        q_actor = self._q(self.critic, obs, new_action, detach=True)
+        loss_actor = (alpha.view(-1, 1) * log_prob - q_actor.min(1)[0]).mean(-1)
+        loss_alpha = (-self.log_alpha.view(-1, 1) * (log_prob.detach() + self.target_entropy)).mean(
+            -1
+        )
+        for opt in self.optimizers().values():
+            opt.zero_grad()
+        (loss_value.sum() + loss_actor.sum() + loss_alpha.sum()).backward()
+        self.critic_optimizer.step()
+        self.actor_optimizer.step()
+        self.alpha_optimizer.step()
+        with torch.no_grad():
+            torch._foreach_lerp_(self._lerp[0], self._lerp[1], self.tau)
+        return TensorDict(
+            {
+                "loss_value": loss_value.detach(),
+                "loss_actor": loss_actor.detach(),
+                "loss_alpha": loss_alpha.detach(),
+                "alpha": alpha,
+                "entropy": -log_prob.detach().mean(-1),
+                "target_value": target,
+                "pred_value": current.detach(),
+            },
+            batch_size=[self.num_seeds],
+        )
+
     def update(self, batch: TensorDictBase, step_actor: bool = True) -> TensorDict:
         """One agent update of every seed on its own rows of ``batch`` (``[S, B]``):
         critics, then (with ``step_actor``) actor and soft target update, as
         :func:`~torchrl_rave.recipe.update.agent_update` does for one learner. Returns
         per-seed outputs (batch size ``[S]``): ``loss_value``, ``loss_actor``,
         ``target_value`` ``[S, B]``, ``pred_value`` and ``state_action_value_actor``
-        ``[S, K, B]`` and the estimator's diagnostics."""
+        ``[S, K, B]`` and the estimator's diagnostics. SAC steps its actor and temperature
+        at every update, and returns ``alpha`` and ``entropy`` besides."""
+        if self.sac:
+            return self._update_sac(batch)
         target, diagnostics = self.value_target(batch)
         obs, action, _, _, _ = self._read(batch)
         current = self._q(self.critic, obs, action)  # [S, K, B]
@@ -676,6 +777,8 @@ class SeedGroup:
     def optimizers(self) -> dict[str, torch.optim.Optimizer]:
         """The group's optimisers by name (their states hold every seed's moments)."""
         out = {"actor": self.actor_optimizer, "critic": self.critic_optimizer}
+        if self.sac:
+            out["alpha"] = self.alpha_optimizer
         if self.world_model is not None:
             out["world_model"] = self.wm_optimizer
         return out
