@@ -11,6 +11,7 @@ from torchrl.data import Bounded, Composite, Unbounded
 import torchrl_rave.modules.world_model as world_model_module
 from torchrl_rave.recipe.agent import make_agent, make_seed_group
 from torchrl_rave.recipe.update import agent_update
+from torchrl_rave.trainers import seed_group
 
 OBS, ACT, B = 5, 2, 16
 SMALL = [
@@ -122,11 +123,17 @@ def close(a, b, what):
     torch.testing.assert_close(a, b, rtol=2e-5, atol=2e-6, msg=lambda m: f"{what}: {m}")
 
 
-@pytest.mark.parametrize("algorithm", ALGORITHMS)
-@pytest.mark.parametrize("S", [1, 2, 3])
-def test_each_seed_is_its_single_update(algorithm, S, monkeypatch):
+@pytest.mark.parametrize(
+    "algorithm, S, large",
+    [(a, S, False) for a in ALGORITHMS for S in (1, 2, 3)] + [("rave", 2, True), ("ddpg", 2, True)],
+)
+def test_each_seed_is_its_single_update(algorithm, S, large, monkeypatch):
     """Two steps (world model, then agent) of a group of S equal each seed's own steps on
-    its own rows: losses, targets, diagnostics, gradients and parameters after Adam."""
+    its own rows: losses, targets, diagnostics, gradients and parameters after Adam. With
+    ``large``, every layer takes the path of outputs larger than the caches (bmm, then the
+    bias added in place)."""
+    if large:
+        monkeypatch.setattr(seed_group, "_LARGE", 0)
     cfg, _ = learner(algorithm, 0)
     singles = [learner(algorithm, s)[1] for s in range(S)]
     grouped = [learner(algorithm, s)[1] for s in range(S)]

@@ -88,6 +88,10 @@ def _same(name: str, values: Sequence) -> object:
     return first
 
 
+# outputs of more floats than this (2 MiB) are computed as bmm + add_ (see _Linear)
+_LARGE = 1 << 19
+
+
 class _Linear:
     """One grouped affine layer and the activation after it (``None``: none).
 
@@ -117,7 +121,15 @@ class _Linear:
             x = x.unsqueeze(1).expand(*lead, rows, fan_in)
         x = x.reshape(-1, rows, fan_in)
         w = w.reshape(-1, fan_in, fan_out)
-        y = torch.bmm(x, w) if b is None else torch.baddbmm(b.reshape(-1, 1, fan_out), x, w)
+        if b is None:
+            y = torch.bmm(x, w)
+        elif x.shape[0] * rows * fan_out > _LARGE:
+            # an output larger than the caches: baddbmm first writes the bias over all of
+            # it and BLAS then reads it back; the product, then the bias added in place,
+            # spares one pass (a RAVE target layer at S = 8: 6.6 -> 5.5 ms at 1 thread)
+            y = torch.bmm(x, w).add_(b.reshape(-1, 1, fan_out))
+        else:
+            y = torch.baddbmm(b.reshape(-1, 1, fan_out), x, w)
         y = y.view(*lead, rows, fan_out)
         if self.activation is not None:
             inplace = inplace_activation(self.activation)
