@@ -19,6 +19,7 @@ the ones they would get alone.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import time
@@ -214,7 +215,9 @@ def train_group(cfg: DictConfig, run_dir: str) -> dict[str, float]:
     total = cfg.collector.total_frames
     last = [{} for _ in seeds]
     start, frames_at_start = time.perf_counter(), counters["frames"]
-    with StopRequest() as stop, shutdown_on_error(lambda: seeds[0].collector):
+    with StopRequest() as stop, contextlib.ExitStack() as on_error:
+        for s in seeds:  # on an error, no seed's workers outlive the run
+            on_error.enter_context(shutdown_on_error(lambda s=s: s.collector))
         for s in seeds:
             s.collector = make_collector(s.cfg, s.env, s.agent.policy, device, counters["frames"])
         streams = [
