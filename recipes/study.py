@@ -14,7 +14,8 @@ cell finishes, its metric CSVs are copied to ``results/<name>/<task>/<algorithm>
 with ``cell.json`` (the commit and the full config it ran with; ``starts``, the commit and
 first frame of each start, where a cell resumed in a later session; ``train_s``, the cell's
 own collection, update and evaluation seconds; ``runner_s``, the runner's age when the cell
-ended) and, with
+ended; ``machine``, the CPU and torch that ran it; ``group``, the seeds of a seed group it
+ran in) and, with
 ``--commit``, committed at once. A cell with a ``cell.json`` is done and never rerun; an
 interrupted one resumes from its last checkpoint when its run directory survived.
 Checkpoints and buffers are never copied.
@@ -24,11 +25,13 @@ from __future__ import annotations
 
 import argparse
 import json
+import platform
 import shutil
 import subprocess
 import time
 from pathlib import Path
 
+import torch
 from compare import cell
 from study_report import report
 
@@ -64,6 +67,24 @@ def commit_cell(dest: Path) -> None:
     print(f"{rel} is not committed: commit it by hand", flush=True)
 
 
+def machine() -> dict:
+    """What ran the cell, as far as it changes float rounding: the CPU model and its widest
+    vector extension (BLAS picks its kernels by them), the platform and torch's version."""
+    cpu, flags = platform.processor(), set()
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                cpu = line.split(":", 1)[1].strip()
+            elif line.startswith("flags"):
+                flags = set(line.split(":", 1)[1].split())
+                break
+    except OSError:
+        pass
+    vector = next((f for f in ("avx512f", "avx2", "avx", "sse4_2") if f in flags), None)
+    return {"cpu": cpu, "vector": vector, "platform": platform.platform(),
+            "torch": torch.__version__}  # fmt: skip
+
+
 def export(run: Cell, dest: Path, started: float, commit: bool, group: Cell | None = None) -> None:
     """Copies a finished cell's metric CSVs and writes its cell.json (the commit of the
     code that ran it, read from this script's checkout); commits them. A seed of a
@@ -82,6 +103,7 @@ def export(run: Cell, dest: Path, started: float, commit: bool, group: Cell | No
         "runner_s": round(time.time() - started),
         "finished": time.strftime("%Y-%m-%d %H:%M:%S %Z"),
     }
+    info["machine"] = machine()
     if group is not None:
         info["group"] = {"seeds": list(group.seeds)}
     (dest / "cell.json").write_text(json.dumps(info, indent=1) + "\n")

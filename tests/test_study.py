@@ -9,6 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import study
+import torch
 from test_recipe import TINY
 
 from torchrl_rave.recipe.runs import read_scalar
@@ -109,6 +110,7 @@ def test_run_exports_a_finished_cell_and_skips_it_next_time(tmp_path, capsys):
     )
     assert info["train_s"] == round(timed) and info["runner_s"] >= info["train_s"]
     assert info["config"]["algorithm"] == "ddpg" and info["config"]["env"]["seed"] == 0
+    assert info["machine"]["torch"] == torch.__version__ and info["machine"]["cpu"]
     steps, _ = read_scalar(cell, "eval/return")
     assert steps.tolist() == [200, 400]
     assert not list(cell.rglob("checkpoint*"))
