@@ -56,6 +56,7 @@ from torchrl_rave.recipe.config import (
     replay_buffer_size,
 )
 from torchrl_rave.recipe.evaluate import evaluate_agent, make_logger
+from torchrl_rave.recipe.loop import batch_metrics, record_update
 
 __all__ = ["GROUP_ALGORITHMS", "GROUP_FILE", "check_group", "group_config", "train_group"]
 
@@ -250,19 +251,9 @@ def train_group(cfg: DictConfig, run_dir: str) -> dict[str, float]:
                 push_policy_weights(s.collector, s.agent.policy)
             frames_now = counters["frames"]
             evaluate = frames_now >= counters["next_eval"] or frames_now >= total
+            fps = (frames_now - frames_at_start) / (time.perf_counter() - start)
             for i, (s, d) in enumerate(zip(seeds, data, strict=True)):
-                metrics = {k: torch.stack(v).mean().item() for k, v in acc[i].items()}
-                done = d["next", "done"].squeeze(-1)
-                if done.any():
-                    metrics["train/episode_reward"] = (
-                        d["next", "episode_reward"][done].mean().item()
-                    )
-                n_updates = len(acc[i].get("train/loss_critic", ()))
-                metrics["time/collect_s"] = collect_s
-                metrics["time/update_s"] = update_s
-                if n_updates:
-                    metrics["time/updates_per_s"] = n_updates / max(update_s, 1e-9)
-                metrics["time/fps"] = (frames_now - frames_at_start) / (time.perf_counter() - start)
+                metrics = batch_metrics(acc[i], d, collect_s, update_s, fps)
                 if evaluate:
                     t_eval = time.perf_counter()
                     s.eval_env.set_seed(s.seed + 1_000_003 + frames_now)
@@ -347,29 +338,24 @@ def update_group_on_batch(cfg: DictConfig, seeds, group, counters: dict, n_frame
     counters["update_budget"] -= n_updates
     policy_delay = cfg.td3.policy_delay if cfg.algorithm == "td3" else 1
     for _ in range(n_updates):
+        wm = None
         if model_based:
             if trainers[0].calls % trainers[0].train_every == 0:
                 wm = model_step()
-                for i in range(len(seeds)):
-                    for key in ("transition_nll", "transition_mse", "reward_nll", "reward_mse",
-                                "termination_bce"):  # fmt: skip
-                        acc[i][f"train/wm_{key}"].append(wm[key][i])
             for t in trainers:
                 t.calls += 1
         step_actor = counters["updates"] % policy_delay == 0
         out = group.update(sample(), step_actor)
         counters["updates"] += 1
+        keys = group.diagnostic_keys if group.expanding else None
         for i in range(len(seeds)):
-            acc[i]["train/loss_critic"].append(out["loss_value"][i])
-            if step_actor:
-                acc[i]["train/loss_actor"].append(out["loss_actor"][i])
-            if group.sac:  # SACLoss's temperature
-                acc[i]["train/sac_temperature"].append(out["alpha"][i])
-            if group.expanding:
-                keys = group.diagnostic_keys
-                acc[i]["train/rave_alpha"].append(out[keys.alpha][i].mean())
-                for h, w in enumerate(out[keys.horizon_weights][i].mean(0).unbind(-1)):
-                    acc[i][f"train/horizon_weight_h{h}"].append(w)
-                for h, v in enumerate(out[keys.horizon_variance][i].mean(0).unbind(-1)):
-                    acc[i][f"train/candidate_variance_h{h}"].append(v)
+            record_update(
+                acc[i],
+                critic_loss=out["loss_value"][i],
+                actor_loss=out["loss_actor"][i] if step_actor else None,
+                temperature=out["alpha"][i] if group.sac else None,
+                world_model=None if wm is None else wm[i],
+                diagnostics=None if keys is None else
+                (out[keys.alpha][i], out[keys.horizon_weights][i], out[keys.horizon_variance][i]),
+            )  # fmt: skip
     return acc

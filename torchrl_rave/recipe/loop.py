@@ -182,19 +182,9 @@ def _train(cfg: DictConfig, run_dir: str) -> dict[str, float]:
                     push_policy_weights(collector, agent.policy)
                     synced_at = counters["updates"]
 
-                metrics = {k: torch.stack(v).mean().item() for k, v in acc.items()}
-                done = data["next", "done"].squeeze(-1)
-                if done.any():
-                    metrics["train/episode_reward"] = (
-                        data["next", "episode_reward"][done].mean().item()
-                    )
-                n_updates = len(acc.get("train/loss_critic", ()))
-                metrics["time/collect_s"] = collect_s
-                metrics["time/update_s"] = update_s
-                if n_updates:
-                    metrics["time/updates_per_s"] = n_updates / max(update_s, 1e-9)
                 frames_now = counters["frames"]
-                metrics["time/fps"] = (frames_now - frames_at_start) / (time.perf_counter() - start)
+                fps = (frames_now - frames_at_start) / (time.perf_counter() - start)
+                metrics = batch_metrics(acc, data, collect_s, update_s, fps)
                 stage = None if curriculum is None else curriculum.stage  # collected in
                 if frames_now >= counters["next_eval"] or frames_now >= total:
                     t_eval = time.perf_counter()
@@ -289,24 +279,70 @@ def update_on_batch(
     critic_key = critic_loss_key(agent.loss)
     for _ in range(n_updates):
         wm = None if wm_trainer is None else wm_trainer.step(rb)
-        if wm is not None:
-            for key in ("transition_nll", "transition_mse", "reward_nll", "reward_mse"):
-                acc[f"train/wm_{key}"].append(wm[key])
-            acc["train/wm_termination_bce"].append(wm["termination_bce"])
         step_actor = counters["updates"] % policy_delay == 0
         out = update_agent(rb.sample(), step_actor)
         counters["updates"] += 1
-        acc["train/loss_critic"].append(out[critic_key].detach())
-        if step_actor:
-            acc["train/loss_actor"].append(out["loss_actor"].detach())
-        if "alpha" in out.keys():  # noqa: SIM118 (a TensorDict): SACLoss's temperature
-            acc["train/sac_temperature"].append(out["alpha"].detach())
+        diagnostics = None
         if agent.algorithm.model_based:
             estimator = agent.loss.value_estimator
             diag, keys = estimator.diagnostics, estimator.tensor_keys
-            acc["train/rave_alpha"].append(diag[keys.alpha].mean())  # eq. 12's confidence
-            for h, w in enumerate(diag[keys.horizon_weights].mean(0).unbind(-1)):
-                acc[f"train/horizon_weight_h{h}"].append(w)
-            for h, v in enumerate(diag[keys.horizon_variance].mean(0).unbind(-1)):
-                acc[f"train/candidate_variance_h{h}"].append(v)
+            diagnostics = (
+                diag[keys.alpha],
+                diag[keys.horizon_weights],
+                diag[keys.horizon_variance],
+            )
+        record_update(
+            acc,
+            critic_loss=out[critic_key].detach(),
+            actor_loss=out["loss_actor"].detach() if step_actor else None,
+            temperature=out["alpha"].detach() if "alpha" in out.keys() else None,  # noqa: SIM118
+            world_model=wm,
+            diagnostics=diagnostics,
+        )
     return acc
+
+
+#: the world-model step's outputs logged as ``train/wm_<name>``
+WORLD_MODEL_METRICS = ("transition_nll", "transition_mse", "reward_nll", "reward_mse",
+                       "termination_bce")  # fmt: skip
+
+
+def record_update(
+    acc: dict, *, critic_loss, actor_loss=None, temperature=None, world_model=None,
+    diagnostics=None,
+) -> None:  # fmt: skip
+    """Appends one update's training metrics to ``acc`` under their logged names: the
+    critic's (and actor's) loss, SAC's temperature, the world-model step's outputs, and a
+    value-expansion target's per-sample diagnostics ``(alpha, horizon weights, candidate
+    variances)`` as batch means (``alpha`` is eq. 12's confidence)."""
+    if world_model is not None:
+        for key in WORLD_MODEL_METRICS:
+            acc[f"train/wm_{key}"].append(world_model[key])
+    acc["train/loss_critic"].append(critic_loss)
+    if actor_loss is not None:
+        acc["train/loss_actor"].append(actor_loss)
+    if temperature is not None:
+        acc["train/sac_temperature"].append(temperature)
+    if diagnostics is not None:
+        alpha, weights, variance = diagnostics
+        acc["train/rave_alpha"].append(alpha.mean())
+        for h, w in enumerate(weights.mean(0).unbind(-1)):
+            acc[f"train/horizon_weight_h{h}"].append(w)
+        for h, v in enumerate(variance.mean(0).unbind(-1)):
+            acc[f"train/candidate_variance_h{h}"].append(v)
+
+
+def batch_metrics(acc: dict, data, collect_s: float, update_s: float, fps: float) -> dict:
+    """One collected batch's logged metrics: the means of its updates' ``acc``, the return
+    of the training episodes that ended in ``data``, and its timings."""
+    metrics = {k: torch.stack(v).mean().item() for k, v in acc.items()}
+    done = data["next", "done"].squeeze(-1)
+    if done.any():
+        metrics["train/episode_reward"] = data["next", "episode_reward"][done].mean().item()
+    n_updates = len(acc.get("train/loss_critic", ()))
+    metrics["time/collect_s"] = collect_s
+    metrics["time/update_s"] = update_s
+    if n_updates:
+        metrics["time/updates_per_s"] = n_updates / max(update_s, 1e-9)
+    metrics["time/fps"] = fps
+    return metrics
