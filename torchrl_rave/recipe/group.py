@@ -38,7 +38,7 @@ from torchrl_rave.recipe.agent import (
     make_seed_group,
     q_at_points,
 )
-from torchrl_rave.recipe.checkpoint import PREFIX, RunCheckpoint
+from torchrl_rave.recipe.checkpoint import PREFIX, DamagedCheckpoint, RunCheckpoint
 from torchrl_rave.recipe.collect import (
     NonFiniteEnvOutput,
     StopRequest,
@@ -130,7 +130,7 @@ def _common_checkpoint(seeds: list[_Seed]) -> int:
         for path in s.checkpoint.checkpoints():
             try:
                 s.checkpoint.verify(path)
-            except Exception:  # a damaged one is skipped, as RunCheckpoint.load does
+            except DamagedCheckpoint:  # skipped, as RunCheckpoint.load skips it
                 continue
             frames.add(int(path.name[len(PREFIX) :]))
         common = frames if common is None else common & frames
@@ -202,11 +202,9 @@ def train_group(cfg: DictConfig, run_dir: str) -> dict[str, float]:
         group.export_optimizer_states(learner_optimizers)
         _write_group_file(root, cfg)
         for s in seeds:
-            saved_cfg = s.cfg.copy()
-            saved_cfg.collector.total_frames = cfg.collector.total_frames
             s.checkpoint.save(
                 counters["frames"],
-                config=OmegaConf.to_container(saved_cfg),
+                config=OmegaConf.to_container(s.cfg),
                 counters=dict(counters),
                 replay_buffer=s.rb,
                 logger={} if s.logger is None else s.logger.state_dict(),
