@@ -1,11 +1,16 @@
 """Many independent learners updated as one: the seed as a batch dimension of every call.
 
-:class:`SeedGroup` takes ``S`` fully built learners of the DDPG family (``ddpg``, ``mve``,
-``steve``, ``rave`` and ``rave_constant``: an :class:`~torchrl_rave.objectives.EnsembleDDPGLoss`
-with its target estimator and, for the model-based ones, a
-:class:`~torchrl_rave.objectives.WorldModelEnsembleLoss`) and moves every parameter, target
-parameter and normaliser statistic of all of them into one tensor per leaf, with the seed as
-a dimension of its own:
+:class:`SeedGroup` takes ``S`` fully built learners and moves every parameter, target
+parameter and normaliser statistic of all of them into one tensor per leaf, with the seed
+as a dimension of its own. The learners are of one kind:
+
+- ``ddpg``, ``mve``, ``steve``, ``rave`` and ``rave_constant``: an
+  :class:`~torchrl_rave.objectives.EnsembleDDPGLoss` with its target estimator and, for
+  the model-based ones, a :class:`~torchrl_rave.objectives.WorldModelEnsembleLoss`;
+- ``td3``: TorchRL's ``TD3Loss``;
+- ``sac``: TorchRL's ``SACLoss`` (v2, no value network).
+
+The fused leaves are laid out as follows:
 
 ==================  ================================  ===================================
 network             one learner's leaf                the group's leaf
@@ -324,10 +329,11 @@ class SeedGroup:
     """``S`` independent DDPG-family learners, each network call batched across seeds.
 
     Args:
-        losses (Sequence[EnsembleDDPGLoss]): one loss per seed, with the same networks'
-            shapes, the same value estimator type and hyperparameters (TD(0), or MVE, STEVE
-            or RAVE wired with ``for_loss``), and planned fast calls (TorchRL MLP actors and
-            critics, the actor ending in a ``TanhModule``).
+        losses (Sequence[LossModule]): one loss per seed, all ``EnsembleDDPGLoss``, all
+            ``TD3Loss`` or all ``SACLoss``, with the same networks' shapes, the same value
+            estimator type and hyperparameters (TD(0), or MVE, STEVE or RAVE wired with
+            ``for_loss``), and plain TorchRL MLP actors and critics (the deterministic actor
+            ending in a ``TanhModule``, SAC's the recipe's tanh-Gaussian).
 
     Keyword Args:
         lr_actor (float): the actor's Adam learning rate.
@@ -341,6 +347,9 @@ class SeedGroup:
             ``randn`` per call for the whole group.
         bootstrap_indices (Callable, optional): ``(B, S) -> [N, S, B]`` resample indices of
             the world-model step. Defaults to one ``randint`` for the group.
+        policy_noise_draw (Callable, optional): ``action -> noise``, TD3's target smoothing
+            draw before scaling and clipping. Defaults to ``torch.randn_like``.
+        lr_alpha (float, optional): SAC's temperature learning rate (required for SAC).
 
     After construction every learner's parameters, target parameters and world-model
     statistics are views of the group's tensors (see the module's docstring); train with
