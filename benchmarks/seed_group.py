@@ -12,12 +12,13 @@ several rounds, as in ``update_throughput.py``):
   shapes, seeds 0..S-1), each taking its own update in turn: the world-model step
   (``WorldModelTrainer.update``) and the agent update (``agent_update``), exactly what a
   single run does per update;
-- *group*: the same S learners fused into one :class:`~torchrl_rave.trainers.SeedGroup`,
-  taking ``update_world_model`` and ``update`` on a ``[S, B]`` batch.
+- *group*: the same S learners fused into one :class:`~torchrl_rave.trainers.SeedGroup`
+  with a random stream per seed (:class:`~torchrl_rave.trainers.SeedStreams`), as the
+  recipe builds it, taking ``update_world_model`` and ``update`` on a ``[S, B]`` batch.
 
 Reported per S: per-seed updates per second of each, their ratio (the group's speed-up),
 the ATen calls one group update makes (a ``TorchDispatchMode`` count, forward, backward
-and optimiser steps; it should not grow with S), and the share of the dense matmul peak
+and optimiser steps; only the random draws, one call per seed each, grow with S), and the share of the dense matmul peak
 (counted matmul FLOPs x updates per second / peak, measured in the same process).
 Results go to stdout and ``benchmarks/seed_group.json`` (``--out``).
 """
@@ -45,7 +46,7 @@ from update_throughput import (
 from torchrl_rave.recipe.agent import make_seed_group
 from torchrl_rave.recipe.memory import keep_freed_memory
 from torchrl_rave.recipe.update import make_agent_step
-from torchrl_rave.trainers import SeedGroup
+from torchrl_rave.trainers import SeedGroup, SeedStreams
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -77,7 +78,11 @@ def separate_case(algorithm: str, S: int, device) -> Case:
 def group_case(algorithm: str, S: int, device) -> tuple[Case, SeedGroup]:
     cfg, agents = learners(algorithm, S, device)
     model_based = agents[0].world_model is not None
-    group = make_seed_group(cfg, agents)
+    streams = SeedStreams(S, device)  # each seed's own random stream, as the recipe's
+    for i in range(S):
+        torch.manual_seed(i)
+        streams.capture(i)
+    group = make_seed_group(cfg, agents, streams=streams)
     B = cfg.replay_buffer.batch_size
     data = [
         TensorDict.maybe_dense_stack(list(b.split(B))) if S > 1 else b.unsqueeze(0)

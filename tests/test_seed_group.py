@@ -138,14 +138,6 @@ def test_each_seed_is_its_single_update(algorithm, S, large, monkeypatch):
     singles = [learner(algorithm, s)[1] for s in range(S)]
     grouped = [learner(algorithm, s)[1] for s in range(S)]
     rec = Recorder()
-    normal = torch.distributions.normal._standard_normal
-
-    def standard_normal(shape, dtype, device):  # the group's SAC draws, kept
-        eps = normal(shape, dtype=dtype, device=device)
-        rec.noise.append(eps)
-        return eps
-
-    monkeypatch.setattr(torch.distributions.normal, "_standard_normal", standard_normal)
     group = make_group(grouped, cfg, draw=rec.draw, bootstrap_indices=rec.bootstrap,
                        policy_noise_draw=rec.policy_noise)  # fmt: skip
     # TD3 delays its actor: the second update steps the critics only
@@ -254,3 +246,60 @@ def test_refuses_mixed_learners():
         make_group([a, b], cfg)
     with pytest.raises(ValueError, match=r"batches of shape \[1, B\]"):
         make_group([learner("ddpg", 0)[1]], cfg).update(batch(2))
+
+
+def test_seed_streams_keep_each_seed_apart():
+    """Each seed's stream continues where it left off, whatever the others drew meanwhile;
+    ``stack`` draws seed by seed under each stream."""
+    streams = seed_group.SeedStreams(2)
+    with pytest.raises(RuntimeError, match="never captured"):
+        streams.use(0).__enter__()
+    for i in range(2):
+        torch.manual_seed(10 + i)
+        streams.capture(i)
+    with streams.use(0):
+        first = torch.rand(4)
+    with streams.use(1):
+        other = torch.rand(1000)
+    with streams.use(0):
+        second = torch.rand(4)
+    stacked = streams.stack(lambda i: torch.rand(3))
+    torch.manual_seed(10)
+    alone = torch.rand(11)
+    torch.testing.assert_close(torch.cat([first, second, stacked[0]]), alone, rtol=0, atol=0)
+    torch.manual_seed(11)
+    alone = torch.rand(1003)
+    torch.testing.assert_close(torch.cat([other, stacked[1]]), alone, rtol=0, atol=0)
+
+
+@pytest.mark.parametrize("algorithm", ["rave", "td3", "sac"])
+def test_a_seeds_draws_do_not_depend_on_its_group(algorithm):
+    """With streams, seed 1 of a group of three draws what it draws in a group of its own:
+    its world-model step and two updates give the same losses, targets and parameters."""
+    cfg, _ = learner(algorithm, 0)
+    results = []
+    for members in ([0, 1, 2], [1]):
+        agents = [learner(algorithm, s)[1] for s in members]
+        streams = seed_group.SeedStreams(len(members))
+        for i, s in enumerate(members):
+            torch.manual_seed(1000 + s)
+            streams.capture(i)
+        group = make_group(agents, cfg, streams=streams)
+        torch.manual_seed(5)  # the process stream: no draw of the update reads it
+        at = members.index(1)
+        outs = []
+        for i in range(2):
+            d = batch(3, seed=i)[[1] if len(members) == 1 else slice(None)]  # seed 1's rows
+            if group.world_model is not None:
+                outs.append(group.update_world_model(d)[at])
+            outs.append(group.update(d)[at])
+        results.append((outs, [p[at].detach().clone() for p in group.actor_leaves +
+                               group.critic_leaves]))  # fmt: skip
+    (outs_a, params_a), (outs_b, params_b) = results
+    for a, b in zip(outs_a, outs_b, strict=True):
+        for key in a.keys():  # noqa: SIM118 (a TensorDict)
+            close(a[key], b[key], key)
+    for a, b in zip(params_a, params_b, strict=True):
+        close(a, b, "parameters")
+    with pytest.raises(ValueError, match="streams hold 2 seeds"):
+        make_group([learner(algorithm, 0)[1]], cfg, streams=seed_group.SeedStreams(2))

@@ -10,11 +10,13 @@ its own, and the batch's updates run for all seeds at once. ``<run_dir>/group.js
 the group's config; ``resume=<run_dir>`` continues every seed from the newest checkpoint
 all of them have.
 
-The learners' networks are initialised exactly as a single run with the same seed would
-initialise them. The random stream after that (exploration noise, replay sampling, the
-world model's draws) is the process's, shared by the seeds in a fixed order: a group of one
-follows a single run's stream exactly; seeds of a larger group get independent draws, not
-the ones they would get alone.
+Each seed also has its own random stream (:class:`~torchrl_rave.trainers.SeedStreams`):
+its networks are initialised after ``torch.manual_seed(seed)``, as a single run's are, and
+everything drawn for it afterwards (random and exploratory actions, replay sampling, the
+world model's bootstrap and rollouts, TD3's and SAC's noise) comes from its stream, in a
+single run's order. So a seed draws the same numbers in any group, alone or not, as a
+single run of that seed does; what can still differ is float rounding of the batched
+kernels.
 """
 
 from __future__ import annotations
@@ -57,6 +59,7 @@ from torchrl_rave.recipe.config import (
 )
 from torchrl_rave.recipe.evaluate import evaluate_agent, make_logger
 from torchrl_rave.recipe.loop import batch_metrics, record_update
+from torchrl_rave.trainers import SeedStreams
 
 __all__ = ["GROUP_ALGORITHMS", "GROUP_FILE", "check_group", "group_config", "train_group"]
 
@@ -161,7 +164,8 @@ def train_group(cfg: DictConfig, run_dir: str) -> dict[str, float]:
     apply_process_settings(cfg)
 
     seeds: list[_Seed] = []
-    for seed in cfg.seeds:
+    rng = SeedStreams(len(cfg.seeds), device)
+    for i, seed in enumerate(cfg.seeds):
         one = _seed_config(cfg, int(seed))
         torch.manual_seed(one.env.seed)  # the single run's initialisation, seed by seed
         env, eval_env = make_env(one, device), make_env(one, device)
@@ -170,6 +174,7 @@ def train_group(cfg: DictConfig, run_dir: str) -> dict[str, float]:
         seed_dir.mkdir(parents=True, exist_ok=True)
         seeds.append(_Seed(int(seed), one, seed_dir, env, eval_env, agent,
                            make_replay_buffer(one, device), RunCheckpoint(seed_dir)))  # fmt: skip
+        rng.capture(i)  # from here on, seed i draws from its own stream
     transition = seeds[0].env.fake_tensordict()
     for s in seeds:
         s.checkpoint.preflight(
@@ -182,34 +187,36 @@ def train_group(cfg: DictConfig, run_dir: str) -> dict[str, float]:
         frame = _common_checkpoint(seeds)
         for i, s in enumerate(seeds):
             own = dict(counters)
-            s.checkpoint.load(
-                path=s.checkpoint.root / f"{PREFIX}{frame:012d}",
-                restore_rng=i == 0,  # one process stream, saved alike by every seed
-                counters=own, replay_buffer=s.rb, logger=logger_states[i],
-                **s.agent.state_components(),
-            )  # fmt: skip
+            with rng.use(i):  # restores seed i's stream as its checkpoint saved it
+                s.checkpoint.load(
+                    path=s.checkpoint.root / f"{PREFIX}{frame:012d}",
+                    counters=own, replay_buffer=s.rb, logger=logger_states[i],
+                    **s.agent.state_components(),
+                )  # fmt: skip
             if i == 0:
                 counters.update(own)
     for s, state in zip(seeds, logger_states, strict=True):
         s.logger = make_logger(s.cfg, str(s.dir), state or None)
-    group = make_seed_group(cfg, [s.agent for s in seeds])
+    group = make_seed_group(cfg, [s.agent for s in seeds], streams=rng)
     learner_optimizers = [_optimizers(s.agent) for s in seeds]
     group.import_optimizer_states(learner_optimizers)
-    for s in seeds:
-        s.env.set_seed(s.seed + counters["frames"])
+    for i, s in enumerate(seeds):
+        with rng.use(i):
+            s.env.set_seed(s.seed + counters["frames"])
 
     def save_checkpoint():
         group.export_optimizer_states(learner_optimizers)
         _write_group_file(root, cfg)
-        for s in seeds:
-            s.checkpoint.save(
-                counters["frames"],
-                config=OmegaConf.to_container(s.cfg),
-                counters=dict(counters),
-                replay_buffer=s.rb,
-                logger={} if s.logger is None else s.logger.state_dict(),
-                **s.agent.state_components(),
-            )
+        for i, s in enumerate(seeds):
+            with rng.use(i):  # the checkpoint's random state is seed i's stream
+                s.checkpoint.save(
+                    counters["frames"],
+                    config=OmegaConf.to_container(s.cfg),
+                    counters=dict(counters),
+                    replay_buffer=s.rb,
+                    logger={} if s.logger is None else s.logger.state_dict(),
+                    **s.agent.state_components(),
+                )
 
     total = cfg.collector.total_frames
     last = [{} for _ in seeds]
@@ -217,15 +224,18 @@ def train_group(cfg: DictConfig, run_dir: str) -> dict[str, float]:
     with StopRequest() as stop, contextlib.ExitStack() as on_error:
         for s in seeds:  # on an error, no seed's workers outlive the run
             on_error.enter_context(shutdown_on_error(lambda s=s: s.collector))
-        for s in seeds:
-            s.collector = make_collector(s.cfg, s.env, s.agent.policy, device, counters["frames"])
-        streams = [
+        for i, s in enumerate(seeds):
+            with rng.use(i):
+                s.collector = make_collector(
+                    s.cfg, s.env, s.agent.policy, device, counters["frames"]
+                )
+        iterators = [
             guarded_batches(s.collector, s.cfg, save_checkpoint, lambda: counters["frames"],
                             str(s.dir))
             for s in seeds
         ]  # fmt: skip
         t_collect = time.perf_counter()
-        for batches in zip(*streams, strict=False):
+        for batches in _lockstep(iterators, rng):
             collect_s = time.perf_counter() - t_collect
             data = [b.reshape(-1) for b in batches]
             for s, d in zip(seeds, data, strict=True):
@@ -254,8 +264,9 @@ def train_group(cfg: DictConfig, run_dir: str) -> dict[str, float]:
                 metrics = batch_metrics(acc[i], d, collect_s, update_s, fps)
                 if evaluate:
                     t_eval = time.perf_counter()
-                    s.eval_env.set_seed(s.seed + 1_000_003 + frames_now)
-                    last[i] = evaluate_agent(s.cfg, s.eval_env, s.agent)
+                    with rng.use(i):
+                        s.eval_env.set_seed(s.seed + 1_000_003 + frames_now)
+                        last[i] = evaluate_agent(s.cfg, s.eval_env, s.agent)
                     metrics.update(last[i])
                     metrics["time/eval_s"] = time.perf_counter() - t_eval
                 metrics.update(q_at_points(s.agent.loss, cfg.logger.q_points, cfg.env.reward_scale))
@@ -279,8 +290,9 @@ def train_group(cfg: DictConfig, run_dir: str) -> dict[str, float]:
         print(f"stopped at frame {counters['frames']}; resume with resume={root}")
     elif not last[0]:  # a group resumed from its final checkpoint
         for i, s in enumerate(seeds):
-            s.eval_env.set_seed(s.seed + 1_000_003 + counters["frames"])
-            last[i] = evaluate_agent(s.cfg, s.eval_env, s.agent)
+            with rng.use(i):
+                s.eval_env.set_seed(s.seed + 1_000_003 + counters["frames"])
+                last[i] = evaluate_agent(s.cfg, s.eval_env, s.agent)
     for s in seeds:
         if s.logger is not None and hasattr(s.logger, "shutdown"):
             s.logger.shutdown()
@@ -293,6 +305,20 @@ def train_group(cfg: DictConfig, run_dir: str) -> dict[str, float]:
     for key in last[0]:
         out[key] = sum(m[key] for m in last) / len(last)
     return out
+
+
+def _lockstep(iterators, rng: SeedStreams):
+    """One batch of every seed's collector, each drawn under its seed's stream, until the
+    first runs out."""
+    while True:
+        batches = []
+        for i, it in enumerate(iterators):
+            with rng.use(i):
+                batch = next(it, None)
+            if batch is None:
+                return
+            batches.append(batch)
+        yield batches
 
 
 def _optimizers(agent: Agent) -> list[torch.optim.Optimizer]:
@@ -317,7 +343,11 @@ def update_group_on_batch(cfg: DictConfig, seeds, group, counters: dict, n_frame
         return acc
 
     def sample():
-        return torch.stack([s.rb.sample() for s in seeds])
+        batches = []
+        for i, s in enumerate(seeds):
+            with group.streams.use(i):
+                batches.append(s.rb.sample())
+        return torch.stack(batches)
 
     def model_step():
         out = group.update_world_model(sample())

@@ -30,10 +30,17 @@ meet seed ``s``'s weights and the number of kernel calls does not depend on ``S`
 backward gives each seed exactly its own gradient, and Adam and the soft target update act
 element-wise.
 
-The update's random draws (the world model's bootstrap indices, RAVE's sampled rollouts)
-are one call each for the whole group, from the global generator in the order a single
-learner draws them: a group of one draws exactly what the single learner draws. Seeds of
-a larger group get independent draws, but not the ones they would get alone.
+Random draws. With :class:`SeedStreams` (``streams=``, as the recipe builds every group),
+each seed draws from its own stream: every random draw of an update (the world model's
+bootstrap indices and sampled rollouts, TD3's target smoothing, SAC's actions) is made seed
+by seed, each under its seed's generator state, with the shape and in the order its single
+learner draws it. A seed's draws then do not depend on which other seeds share the group,
+and a seed of any group draws exactly what a single run of that seed draws. These draws are
+the one part of an update whose kernel calls grow with ``S`` (one per seed per draw, a few
+per update); the network evaluations stay one call each. Without ``streams`` each draw is
+one call for the whole group from the process's generator: a group of one still draws what
+its single learner draws, seeds of a larger group draw independently of each other, but
+not what they would draw alone.
 
 This is the hand-folded form of ``torch.func.vmap`` over the update: ``vmap`` over TorchRL's
 loss does not carry gradients through ``TensorDictParams`` and was slower than separate
@@ -47,9 +54,9 @@ from collections.abc import Callable, Sequence
 import torch
 from tensordict import TensorDict, TensorDictBase
 from tensordict.nn import NormalParamExtractor
+from torch.distributions.utils import _sum_rightmost
 from torch.nn import functional as F
 from torchrl.objectives import SACLoss, TD3Loss
-from torchrl.objectives.sac import compute_rsample_log_prob
 
 from torchrl_rave.modules.ensemble import EnsembleLinear, EnsembleMLP, inplace_activation
 from torchrl_rave.modules.tensor_call import TensorCall, _leaf, _linear_layers
@@ -318,11 +325,98 @@ class _GroupedWorldModel:
         return self.delta_norm.normalize(next_obs - obs)
 
 
-def _draw(mean: Tensor, logvar: Tensor, sample: bool) -> Tensor:
-    """The world model's draw (``modules.world_model._draw``): one ``randn`` for the group."""
-    if not sample:
-        return mean
-    return mean + torch.randn_like(mean) * (0.5 * logvar).exp()
+class SeedStreams:
+    """One random stream per seed of a group trained in one process.
+
+    Torch draws from process-global generators (the CPU one and each accelerator's), so a
+    seed's stream is kept as a saved generator state and swapped in around everything
+    done for that seed: :meth:`use` for a phase (collection, sampling, evaluation, a
+    checkpoint), :meth:`stack` for one draw per seed inside a batched update. Work done
+    under ``use(i)`` sees exactly the generator a single run of seed ``i`` would see, so a
+    seed's draws do not depend on the other seeds of its group. Python's ``random`` and
+    NumPy's global generator are left shared (the recipe draws from neither: its envs have
+    their own generators).
+
+    Args:
+        num_seeds (int): the group's size.
+        device (torch.device, optional): the device the group's tensors live on; a CUDA
+            device's generator is swapped along with the CPU's.
+
+    Each seed's state is taken with :meth:`capture` once the seed has been set up (after
+    ``torch.manual_seed`` and its networks' initialisation, as a single run does them).
+
+    Examples:
+        >>> streams = SeedStreams(2)
+        >>> for i, seed in enumerate([0, 1]):
+        ...     _ = torch.manual_seed(seed)
+        ...     streams.capture(i)
+        >>> with streams.use(1):
+        ...     a = torch.rand(3)
+        >>> _ = torch.manual_seed(1)
+        >>> torch.equal(a, torch.rand(3))
+        True
+    """
+
+    def __init__(self, num_seeds: int, device: torch.device | str | None = None) -> None:
+        self.num_seeds = num_seeds
+        self._generators = [torch.default_generator]
+        device = torch.device(device) if device is not None else None
+        if device is not None and device.type == "cuda":
+            index = device.index if device.index is not None else torch.cuda.current_device()
+            self._generators.append(torch.cuda.default_generators[index])
+        self._states: list[list[Tensor] | None] = [None] * num_seeds
+
+    def capture(self, i: int) -> None:
+        """Takes the generators' current state as seed ``i``'s stream."""
+        self._states[i] = [g.get_state() for g in self._generators]
+
+    def use(self, i: int):
+        """A context in which the process's generators are seed ``i``'s; on leaving it the
+        advanced state is kept as seed ``i``'s stream."""
+        return _SeedStream(self, i)
+
+    def _enter(self, i: int) -> None:
+        state = self._states[i]
+        if state is None:
+            raise RuntimeError(f"seed {i}'s random stream was never captured (capture({i}))")
+        for g, one in zip(self._generators, state, strict=True):
+            g.set_state(one)
+
+    def stack(self, draw: Callable[[int], Tensor], dim: int = 0) -> Tensor:
+        """``draw(i)`` for each seed under its own stream, stacked along ``dim``."""
+        out = []
+        for i in range(self.num_seeds):
+            self._enter(i)
+            out.append(draw(i))
+            self.capture(i)
+        return torch.stack(out, dim)
+
+
+class _SeedStream:
+    def __init__(self, streams: SeedStreams, i: int) -> None:
+        self.streams, self.i = streams, i
+
+    def __enter__(self) -> None:
+        self.streams._enter(self.i)
+
+    def __exit__(self, *exc) -> None:
+        self.streams.capture(self.i)
+
+
+def _gaussian_draw(streams: SeedStreams | None) -> Callable[[Tensor, Tensor, bool], Tensor]:
+    """The world model's draw (``modules.world_model._draw``) for outputs with the seed
+    leading: seed by seed from ``streams``, or one ``randn`` for the group."""
+
+    def draw(mean: Tensor, logvar: Tensor, sample: bool) -> Tensor:
+        if not sample:
+            return mean
+        if streams is None:
+            noise = torch.randn_like(mean)
+        else:
+            noise = streams.stack(lambda i: torch.randn_like(mean[i]))
+        return mean + noise * (0.5 * logvar).exp()
+
+    return draw
 
 
 class SeedGroup:
@@ -342,13 +436,17 @@ class SeedGroup:
         world_model_losses (Sequence[WorldModelEnsembleLoss], optional): one per seed, for
             a value-expansion estimator (each on its loss's world model).
         lr_world_model (float, optional): the world models' Adam learning rate.
+        streams (SeedStreams, optional): each seed's random stream; every default draw
+            below is then made seed by seed under it (see the module's docstring).
+            Without it each draw is one call for the group from the process's generator.
         draw (Callable, optional): ``(mean, logvar, sample) -> tensor``, the world model's
-            Gaussian draw (tests pass one that replays known noise). Defaults to one
-            ``randn`` per call for the whole group.
+            Gaussian draw (tests pass one that replays known noise). Defaults to
+            ``randn`` noise.
         bootstrap_indices (Callable, optional): ``(B, S) -> [N, S, B]`` resample indices of
-            the world-model step. Defaults to one ``randint`` for the group.
-        policy_noise_draw (Callable, optional): ``action -> noise``, TD3's target smoothing
-            draw before scaling and clipping. Defaults to ``torch.randn_like``.
+            the world-model step. Defaults to ``randint`` draws.
+        policy_noise_draw (Callable, optional): ``action -> noise``, the policy's standard
+            normal draw shaped as ``action``: TD3's target smoothing before scaling and
+            clipping, SAC's pre-tanh ``eps``. Defaults to ``randn`` noise.
         lr_alpha (float, optional): SAC's temperature learning rate (required for SAC).
 
     After construction every learner's parameters, target parameters and world-model
@@ -393,6 +491,7 @@ class SeedGroup:
         tau: float,
         world_model_losses: Sequence[WorldModelEnsembleLoss] | None = None,
         lr_world_model: float | None = None,
+        streams: SeedStreams | None = None,
         draw: Callable[[Tensor, Tensor, bool], Tensor] | None = None,
         bootstrap_indices: Callable[[int, int], Tensor] | None = None,
         policy_noise_draw: Callable[[Tensor], Tensor] | None = None,
@@ -401,6 +500,12 @@ class SeedGroup:
         losses = list(losses)
         if not losses:
             raise ValueError("a seed group needs at least one learner")
+        if streams is not None and streams.num_seeds != len(losses):
+            raise ValueError(
+                f"streams hold {streams.num_seeds} seeds' random streams, the group has "
+                f"{len(losses)} learners"
+            )
+        self.streams = streams
         kinds = {type(loss) for loss in losses}
         if len(kinds) != 1 or not issubclass(kinds.pop(), (EnsembleDDPGLoss, TD3Loss, SACLoss)):
             raise TypeError(
@@ -429,7 +534,7 @@ class SeedGroup:
                 setattr(self, name, _same(name, [float(getattr(x, name)) for x in losses]))
             _same("action bounds", [(x.min_action.tolist(), x.max_action.tolist()) for x in losses])
             self.min_action, self.max_action = losses[0].min_action, losses[0].max_action
-        self._noise = policy_noise_draw or torch.randn_like
+        self._noise = policy_noise_draw or self._randn_like
         _same("loss_function", [loss.loss_function for loss in losses])
         if losses[0].loss_function != "l2":
             raise ValueError("a seed group's critics regress with loss_function='l2'")
@@ -449,7 +554,9 @@ class SeedGroup:
                     raise ValueError("each world-model loss must train its learner's own model")
             self.wm_losses = list(world_model_losses)
             self.world_model = _GroupedWorldModel(
-                [w.world_model for w in world_model_losses], draw or _draw, self._members
+                [w.world_model for w in world_model_losses],
+                draw or _gaussian_draw(streams),
+                self._members,
             )
             for name in ("bootstrap", "logvar_bound_coeff", "reward_coeff", "termination_coeff"):
                 _same(f"world-model loss {name}", [getattr(w, name) for w in world_model_losses])
@@ -644,11 +751,19 @@ class SeedGroup:
     # ----------------------------------------------------------------- updates
     def _sac_action(self, obs: Tensor) -> tuple[Tensor, Tensor]:
         """A reparameterised tanh-Gaussian action ``[S, B, A]`` and its log-probability
-        ``[S, B]``, drawn as the recipe's SAC actor draws them (its own extractor and
-        distribution module, one normal draw for the group)."""
+        ``[S, B]``, drawn as the recipe's SAC actor draws them: its own extractor and
+        distribution module, the pre-tanh value ``loc + eps * scale`` scored as
+        ``TanhNormal.rsample_and_log_prob`` scores it (``eps``: ``policy_noise_draw``)."""
         loc, scale = self._extractor(_run(self.actor, obs))
         dist = self._dist.get_dist(TensorDict(loc=loc, scale=scale, batch_size=loc.shape[:-1]))
-        return compute_rsample_log_prob(dist)
+        base = dist.root_dist
+        preimage = base.loc + self._noise(base.loc) * base.scale
+        transform = dist.transforms[0]
+        action = transform(preimage)
+        log_prob = dist.base_dist.log_prob(preimage) - _sum_rightmost(
+            transform.log_abs_det_jacobian(preimage, action), len(dist.event_shape)
+        )
+        return action, log_prob
 
     def _update_sac(self, batch: TensorDictBase) -> TensorDict:
         """SACLoss (v2) for every seed: the critics' target from the current actor's next
@@ -727,12 +842,21 @@ class SeedGroup:
             batch_size=[self.num_seeds],
         )
 
+    def _randn_like(self, x: Tensor) -> Tensor:
+        """Standard normal noise shaped as ``x`` (the seed leading): seed by seed from the
+        group's streams, or one draw for the group."""
+        if self.streams is None:
+            return torch.randn_like(x)
+        return self.streams.stack(lambda i: torch.randn_like(x[i]))
+
     def _bootstrap_indices(self, B: int, device) -> Tensor:
         N, S = self.world_model.num_models, self.num_seeds
         if self._bootstrap is not None:
             return self._bootstrap(B, S)
         if not self.wm_losses[0].bootstrap:
             return torch.arange(B, device=device).expand(N, S, B)
+        if self.streams is not None:  # each seed's [N, B], as its learner draws them
+            return self.streams.stack(lambda i: torch.randint(B, (N, B), device=device), 1)
         return torch.randint(B, (N, S, B), device=device)
 
     def update_world_model(self, batch: TensorDictBase) -> TensorDict:
