@@ -203,21 +203,24 @@ def test_missing_cells_run_interrupted_first_then_seed_by_seed_across_tasks(tmp_
     ]
 
 
-def test_the_stochastic_study_has_its_36_cells_with_their_noise(tmp_path):
-    config = Path(study.__file__).parent / "study" / "stochastic100k.yaml"
+@pytest.mark.parametrize(
+    "name, env", [("stochastic100k", "Hopper-v5"), ("stochastic100k_walker2d", "Walker2d-v5")]
+)
+def test_the_stochastic_study_has_its_36_cells_with_their_noise(name, env, tmp_path):
+    config = Path(study.__file__).parent / "study" / f"{name}.yaml"
     loaded = study.load_study(config)
     cells = study.missing_cells(loaded, tmp_path / "results", tmp_path / "runs")
     assert len(cells) == 36
     by_dir = {"/".join(c.run_dir.parts[-3:]): c for c in cells}
-    noisy = by_dir["Hopper-v5-noise0.3/mve/seed2"]
-    assert "env.name=Hopper-v5" in noisy.overrides and "env.action_noise=0.3" in noisy.overrides
+    noisy = by_dir[f"{env}-noise0.3/mve/seed2"]
+    assert f"env.name={env}" in noisy.overrides and "env.action_noise=0.3" in noisy.overrides
     assert noisy.frames == 100_000 and "eval.episodes=10" in noisy.overrides
-    assert "env.action_noise=0" in by_dir["Hopper-v5-noise0/mve/seed2"].overrides
-    assert cells[noisy] == tmp_path / "results/stochastic100k/Hopper-v5-noise0.3/mve/seed2"
+    assert "env.action_noise=0" in by_dir[f"{env}-noise0/mve/seed2"].overrides
+    assert cells[noisy] == tmp_path / f"results/{name}/{env}-noise0.3/mve/seed2"
     # seed 0 of both noise levels and all six algorithms come first
     first = ["/".join(c.run_dir.parts[-3:]) for c in list(cells)[:12]]
     assert all(name.endswith("seed0") for name in first)
-    assert {name.split("/")[0] for name in first} == {"Hopper-v5-noise0", "Hopper-v5-noise0.3"}
+    assert {name.split("/")[0] for name in first} == {f"{env}-noise0", f"{env}-noise0.3"}
     # every cell's overrides make a valid recipe config
     from test_recipe import make_cfg
 
