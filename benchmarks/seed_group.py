@@ -4,6 +4,7 @@ learners against S separate single-learner updates, measured side by side in one
     python benchmarks/seed_group.py                      # rave and ddpg, S = 1, 2, 4, 8, 1 and 2 threads
     python benchmarks/seed_group.py --device cuda        # on a GPU
     python benchmarks/seed_group.py --algorithms rave --seeds 1 4 --threads 2
+    python benchmarks/seed_group.py --streams-cost --algorithms rave --seeds 4 8 --threads 2
 
 For each algorithm, thread count and S, two workloads run interleaved (the median of
 several rounds, as in ``update_throughput.py``):
@@ -47,6 +48,7 @@ from torchrl_rave.recipe.agent import make_seed_group
 from torchrl_rave.recipe.memory import keep_freed_memory
 from torchrl_rave.recipe.update import make_agent_step
 from torchrl_rave.trainers import SeedGroup, SeedStreams
+from torchrl_rave.trainers.seed_group import _gaussian_draw
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -154,6 +156,40 @@ def run(algorithms, seeds, threads, device, seconds: float) -> dict:
     return {"matmul_peak_gflops": peak, "rows": rows}
 
 
+def streams_cost(algorithms, seeds, threads, device, seconds: float) -> dict:
+    """A group with its per-seed random streams (as the recipe builds it) against the same
+    group drawing each random tensor as one call from the process's shared stream, timed
+    in the same interleaved rounds: what the streams cost."""
+    rows = []
+    for n_threads in threads:
+        if device.type == "cpu":
+            torch.set_num_threads(n_threads)
+        for algorithm in algorithms:
+            for S in seeds:
+                own, _ = group_case(algorithm, S, device)
+                shared, group = group_case(algorithm, S, device)
+                group.streams = None
+                if group.world_model is not None:
+                    group.world_model.draw = _gaussian_draw(None)
+                measure([own, shared], device, seconds, rounds=7)
+                row = {
+                    "algorithm": algorithm,
+                    "threads": n_threads,
+                    "seeds": S,
+                    "own_streams_ms": own.seconds * 1e3,
+                    "shared_stream_ms": shared.seconds * 1e3,
+                    "ratio": own.seconds / shared.seconds,
+                }
+                rows.append(row)
+                print(
+                    f"{algorithm:5s} threads={n_threads} S={S}: own streams "
+                    f"{row['own_streams_ms']:.1f} ms, one shared stream "
+                    f"{row['shared_stream_ms']:.1f} ms, ratio {row['ratio']:.3f}",
+                    flush=True,
+                )
+    return {"rows": rows}
+
+
 def main(argv: list[str] | None = None) -> dict:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--algorithms", nargs="+", default=["rave", "ddpg"])
@@ -161,8 +197,17 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument("--threads", nargs="+", type=int, default=[1, 2])
     parser.add_argument("--device", default="cpu")
     parser.add_argument("--seconds", type=float, default=4.0, help="timed per case")
-    parser.add_argument("--out", type=Path, default=ROOT / "benchmarks" / "seed_group.json")
+    parser.add_argument(
+        "--streams-cost",
+        action="store_true",
+        help="instead: time the per-seed random streams against one shared stream "
+        "(to benchmarks/seed_group_streams.json unless --out is given)",
+    )
+    parser.add_argument("--out", type=Path, default=None)
     args = parser.parse_args(argv)
+    if args.out is None:
+        name = "seed_group_streams.json" if args.streams_cost else "seed_group.json"
+        args.out = ROOT / "benchmarks" / name
     device = torch.device(args.device)
     malloc_kept = keep_freed_memory()
     threads = args.threads if device.type == "cpu" else [torch.get_num_threads()]
@@ -170,7 +215,9 @@ def main(argv: list[str] | None = None) -> dict:
         **provenance("seed_group.py", argv),
         "device": torch.cuda.get_device_name(device) if device.type == "cuda" else "cpu",
         "malloc": "keep_freed_memory" if malloc_kept else "default",
-        **run(args.algorithms, args.seeds, threads, device, args.seconds),
+        **(streams_cost if args.streams_cost else run)(
+            args.algorithms, args.seeds, threads, device, args.seconds
+        ),
     }
     args.out.write_text(json.dumps(result, indent=1) + "\n")
     print(f"wrote {args.out}")

@@ -350,3 +350,19 @@ def test_seed_group_benchmark_calls_do_not_grow_with_the_group(tmp_path):
         assert r["speedup"] == pytest.approx(
             r["group_per_seed_updates_per_s"] / r["separate_per_seed_updates_per_s"]
         )
+
+
+def test_seed_group_streams_cost_compares_the_two_ways_of_drawing(tmp_path):
+    """benchmarks/seed_group.py --streams-cost: the group with its per-seed streams and the
+    same group on one shared stream, each timed, and their ratio."""
+    import seed_group
+
+    out = tmp_path / "streams.json"
+    seed_group.main(
+        ["--streams-cost", "--algorithms", "td3", "--seeds", "2", "--threads", "1",
+         "--seconds", "0.1", "--out", str(out)]
+    )  # fmt: skip
+    (row,) = json.loads(out.read_text())["rows"]
+    assert row["algorithm"] == "td3" and row["seeds"] == 2
+    assert row["own_streams_ms"] > 0 and row["shared_stream_ms"] > 0
+    assert row["ratio"] == pytest.approx(row["own_streams_ms"] / row["shared_stream_ms"])
