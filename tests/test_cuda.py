@@ -22,6 +22,7 @@ import torchrl_rave.modules.world_model as world_model_module
 from torchrl_rave import ValueExpansionEstimator
 from torchrl_rave.objectives.world_model_loss import WorldModelEnsembleLoss
 from torchrl_rave.recipe.agent import load_agent, make_replay_buffer
+from torchrl_rave.trainers import SeedStreams
 
 pytestmark = [
     pytest.mark.gpu,
@@ -164,3 +165,39 @@ def test_recipe_trains_on_cuda(overrides, tmp_path):
     for name, p in on_cpu.loss.named_parameters():
         assert p.device.type == "cpu"
         assert torch.equal(p, cuda_params[name].cpu()), name
+
+
+def test_seed_streams_swap_the_cuda_generator():
+    """On a GPU each seed's stream holds the CUDA generator's state too."""
+    streams = SeedStreams(2, CUDA)
+    for i in range(2):
+        torch.manual_seed(20 + i)  # seeds the CPU and every CUDA generator
+        streams.capture(i)
+    with streams.use(1):
+        one = torch.rand(5, device=CUDA)
+    with streams.use(0):
+        zero = torch.rand(5, device=CUDA)
+    with streams.use(1):
+        one_more = torch.rand(5, device=CUDA)
+    torch.manual_seed(21)
+    assert torch.equal(torch.cat([one, one_more]), torch.rand(10, device=CUDA))
+    torch.manual_seed(20)
+    assert torch.equal(zero, torch.rand(5, device=CUDA))
+
+
+@pytest.mark.parametrize("algorithm", ["rave", "sac"])
+def test_a_seed_group_trains_on_cuda(algorithm, tmp_path):
+    """``seeds=[0,1]`` on the GPU: both seeds train and evaluate, and each seed's first
+    logged critic loss is its single CUDA run's (its own stream; batched kernels round
+    differently, so to 1e-2)."""
+    overrides = [*TINY, f"algorithm={algorithm}", "collector.device=cuda"]
+    rave_mujoco.train(make_cfg(*overrides, "seeds=[0,1]"), str(tmp_path / "group"))
+    rave_mujoco.train(make_cfg(*overrides, "env.seed=1"), str(tmp_path / "one"))
+    for seed in (0, 1):
+        run = tmp_path / "group" / f"seed{seed}"
+        assert [step for step, _ in read_scalar(run, "eval/return", algorithm)] == [200, 400]
+        losses = [v for _, v in read_scalar(run, "train/loss_critic", algorithm)]
+        assert losses and all(torch.isfinite(torch.tensor(losses)))
+    grouped = read_scalar(tmp_path / "group" / "seed1", "train/loss_critic", algorithm)[0][1]
+    single = read_scalar(tmp_path / "one", "train/loss_critic", algorithm)[0][1]
+    assert grouped == pytest.approx(single, rel=1e-2)
