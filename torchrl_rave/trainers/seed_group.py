@@ -49,6 +49,7 @@ updates on this workload (``benchmarks/README.md``, the seed-group section).
 
 from __future__ import annotations
 
+import contextlib
 from collections.abc import Callable, Sequence
 
 import torch
@@ -370,10 +371,15 @@ class SeedStreams:
         """Takes the generators' current state as seed ``i``'s stream."""
         self._states[i] = [g.get_state() for g in self._generators]
 
+    @contextlib.contextmanager
     def use(self, i: int):
         """A context in which the process's generators are seed ``i``'s; on leaving it the
         advanced state is kept as seed ``i``'s stream."""
-        return _SeedStream(self, i)
+        self._enter(i)
+        try:
+            yield
+        finally:
+            self.capture(i)
 
     def _enter(self, i: int) -> None:
         state = self._states[i]
@@ -392,29 +398,22 @@ class SeedStreams:
         return torch.stack(out, dim)
 
 
-class _SeedStream:
-    def __init__(self, streams: SeedStreams, i: int) -> None:
-        self.streams, self.i = streams, i
-
-    def __enter__(self) -> None:
-        self.streams._enter(self.i)
-
-    def __exit__(self, *exc) -> None:
-        self.streams.capture(self.i)
+def _randn_like(x: Tensor, streams: SeedStreams | None) -> Tensor:
+    """Standard normal noise shaped as ``x`` (the seed leading): seed by seed from
+    ``streams``, or one draw for the group."""
+    if streams is None:
+        return torch.randn_like(x)
+    return streams.stack(lambda i: torch.randn_like(x[i]))
 
 
 def _gaussian_draw(streams: SeedStreams | None) -> Callable[[Tensor, Tensor, bool], Tensor]:
     """The world model's draw (``modules.world_model._draw``) for outputs with the seed
-    leading: seed by seed from ``streams``, or one ``randn`` for the group."""
+    leading."""
 
     def draw(mean: Tensor, logvar: Tensor, sample: bool) -> Tensor:
         if not sample:
             return mean
-        if streams is None:
-            noise = torch.randn_like(mean)
-        else:
-            noise = streams.stack(lambda i: torch.randn_like(mean[i]))
-        return mean + noise * (0.5 * logvar).exp()
+        return mean + _randn_like(mean, streams) * (0.5 * logvar).exp()
 
     return draw
 
@@ -534,7 +533,7 @@ class SeedGroup:
                 setattr(self, name, _same(name, [float(getattr(x, name)) for x in losses]))
             _same("action bounds", [(x.min_action.tolist(), x.max_action.tolist()) for x in losses])
             self.min_action, self.max_action = losses[0].min_action, losses[0].max_action
-        self._noise = policy_noise_draw or self._randn_like
+        self._noise = policy_noise_draw or (lambda x: _randn_like(x, self.streams))
         _same("loss_function", [loss.loss_function for loss in losses])
         if losses[0].loss_function != "l2":
             raise ValueError("a seed group's critics regress with loss_function='l2'")
@@ -841,13 +840,6 @@ class SeedGroup:
             },
             batch_size=[self.num_seeds],
         )
-
-    def _randn_like(self, x: Tensor) -> Tensor:
-        """Standard normal noise shaped as ``x`` (the seed leading): seed by seed from the
-        group's streams, or one draw for the group."""
-        if self.streams is None:
-            return torch.randn_like(x)
-        return self.streams.stack(lambda i: torch.randn_like(x[i]))
 
     def _bootstrap_indices(self, B: int, device) -> Tensor:
         N, S = self.world_model.num_models, self.num_seeds
