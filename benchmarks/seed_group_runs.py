@@ -14,8 +14,10 @@ the recipe's defaults otherwise) run in three layouts, one after the other:
 
 Reported per layout: the wall-clock seconds until its last process ends, the frames per
 second of all seeds together (4 x frames / seconds), and the peak resident memory of its
-largest process (``wait4``'s ``ru_maxrss``) against a single run's. Results go to stdout
-and ``benchmarks/seed_group_runs.json``.
+largest process (``wait4``'s ``ru_maxrss``) against a single run's, and each seed's last
+evaluation return (every seed draws from its own random stream, so a seed's run is the same
+in every layout up to float rounding). Results go to stdout and
+``benchmarks/seed_group_runs.json``.
 """
 
 from __future__ import annotations
@@ -30,6 +32,8 @@ import time
 from pathlib import Path
 
 from provenance import provenance
+
+from torchrl_rave.recipe.runs import read_scalar
 
 ROOT = Path(__file__).resolve().parents[1]
 RECIPE = ROOT / "recipes" / "rave_mujoco.py"
@@ -59,14 +63,25 @@ def wait_all(procs: list[subprocess.Popen]) -> list[int]:
     return peaks
 
 
-def layout(name: str, batches: list[list[tuple[list[str], int]]], tmp: Path) -> dict:
-    """Runs ``batches`` one after the other, the processes of each side by side."""
+def layout(name: str, batches: list[list[tuple[list[str], int, list[int]]]], tmp: Path) -> dict:
+    """Runs ``batches`` one after the other, the processes of each side by side; each
+    process is ``(overrides, threads, seeds)``, a group when ``seeds`` has several."""
     t = time.perf_counter()
-    peaks = []
+    peaks, returns = [], {}
     for i, batch in enumerate(batches):
-        procs = [start(o, tmp / f"{name}-{i}-{j}", threads) for j, (o, threads) in enumerate(batch)]
+        dirs = [tmp / f"{name}-{i}-{j}" for j in range(len(batch))]
+        procs = [start(o, d, threads) for d, (o, threads, _) in zip(dirs, batch, strict=True)]
         peaks += wait_all(procs)
-    return {"seconds": time.perf_counter() - t, "peak_rss_mib": max(peaks)}
+        for d, (o, _, seeds) in zip(dirs, batch, strict=True):
+            grouped = any(x.startswith("seeds=") for x in o)
+            for seed in seeds:  # each seed's last evaluation
+                _, values = read_scalar(d / f"seed{seed}" if grouped else d, "eval/return")
+                returns[seed] = float(values[-1])
+    return {
+        "seconds": time.perf_counter() - t,
+        "peak_rss_mib": max(peaks),
+        "final_return": {str(s): returns[s] for s in sorted(returns)},
+    }
 
 
 def main(argv: list[str] | None = None) -> dict:
@@ -80,10 +95,10 @@ def main(argv: list[str] | None = None) -> dict:
             f"collector.total_frames={args.frames}", f"eval.interval={args.frames}"]  # fmt: skip
 
     def single(seed):
-        return ([*base, f"env.seed={seed}"], 1)
+        return ([*base, f"env.seed={seed}"], 1, [seed])
 
     def group(seeds, threads):
-        return ([*base, f"seeds=[{','.join(map(str, seeds))}]"], threads)
+        return ([*base, f"seeds=[{','.join(map(str, seeds))}]"], threads, seeds)
 
     with tempfile.TemporaryDirectory() as tmp:
         tmp = Path(tmp)
@@ -104,7 +119,8 @@ def main(argv: list[str] | None = None) -> dict:
         row["peak_rss_vs_single"] = row["peak_rss_mib"] / single_rss
         print(f"{name:34s} {row['seconds']:7.1f} s  {row['fps']:6.1f} frames/s  "
               f"x{row['speedup']:.2f}  peak RSS {row['peak_rss_mib']:.0f} MiB "
-              f"({row['peak_rss_vs_single']:.2f}x a single run's)", flush=True)  # fmt: skip
+              f"({row['peak_rss_vs_single']:.2f}x a single run's)  final eval/return "
+              f"{[round(v, 1) for v in row['final_return'].values()]}", flush=True)  # fmt: skip
     result = {
         **provenance("seed_group_runs.py", argv),
         "algorithm": args.algorithm,
