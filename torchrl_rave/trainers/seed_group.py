@@ -112,7 +112,10 @@ class _Linear:
     ``[S, *E, in, out]`` (:class:`~torchrl_rave.modules.EnsembleLinear`'s), with ``E`` the
     ensemble dimensions (none for the actor, ``K`` critics, ``N`` world-model members).
     Inputs are ``[S, R, in]``, shared by a seed's members, or ``[S, *E, R, in]``, one block
-    per member; the output is ``[S, *E, R, out]``."""
+    per member; the output is ``[S, *E, R, out]``. Each layer is one ``baddbmm`` over the
+    ``S x E`` matrices; a layer of one matrix (a group of one's actor, or DDPG's one
+    critic) is the ``F.linear`` call its single learner makes, so that a group of one
+    rounds as its single run does."""
 
     __slots__ = ("weight", "bias", "activation", "output_major")
 
@@ -134,7 +137,12 @@ class _Linear:
             x = x.unsqueeze(1).expand(*lead, rows, fan_in)
         x = x.reshape(-1, rows, fan_in)
         w = w.reshape(-1, fan_in, fan_out)
-        if b is None:
+        if x.shape[0] == 1 and self.output_major:
+            # one matrix (a group of one's actor, or its one critic): the 2-D call its
+            # learner makes (nn.Linear's, as TensorCall makes for one member); BLAS need
+            # not round a batch of one as it rounds that call, and on some CPUs does not
+            y = F.linear(x[0], w[0].mT, None if b is None else b.reshape(fan_out))
+        elif b is None:
             y = torch.bmm(x, w)
         elif x.shape[0] * rows * fan_out > _LARGE:
             # an output larger than the caches: baddbmm first writes the bias over all of
