@@ -133,10 +133,12 @@ class _Linear:
             w = w.mT.clone(memory_format=torch.contiguous_format).mT
         lead, (fan_in, fan_out) = w.shape[:-2], w.shape[-2:]
         rows = x.shape[-2]
-        if x.dim() == 3 and len(lead) > 1:  # shared by the members: one copy per member
-            x = x.unsqueeze(1).expand(*lead, rows, fan_in)
-        x = x.reshape(-1, rows, fan_in)
-        w = w.reshape(-1, fan_in, fan_out)
+        flat = len(lead) == 1 and x.dim() == 3  # one matrix per seed: x, w, y are [S, ., .]
+        if not flat:
+            if x.dim() == 3 and len(lead) > 1:  # shared by the members: one copy per member
+                x = x.unsqueeze(1).expand(*lead, rows, fan_in)
+            x = x.reshape(-1, rows, fan_in)
+            w = w.reshape(-1, fan_in, fan_out)
         if x.shape[0] == 1 and self.output_major:
             # one matrix (a group of one's actor, or its one critic): the 2-D call its
             # learner makes (nn.Linear's, as TensorCall makes for one member); BLAS need
@@ -157,7 +159,7 @@ class _Linear:
             # whole output (a RAVE group of 8 at 2 threads: about 4 ms of 62 per update)
             inplace = inplace_activation(self.activation)
             y = self.activation(y) if inplace is None else inplace(y)
-        return y.view(*lead, rows, fan_out)
+        return y.view(*lead, rows, fan_out) if not flat or y.dim() == 2 else y
 
 
 def _run(layers: list[_Linear], x: Tensor, detach: bool = False) -> Tensor:
@@ -406,6 +408,18 @@ class SeedStreams:
             out.append(draw(i))
             self.capture(i)
         return torch.stack(out, dim)
+
+
+def _horizon_moments(candidates: Tensor) -> tuple[Tensor, Tensor]:
+    """:func:`~torchrl_rave.objectives.functional.horizon_moments` in two passes: the mean
+    over the ``Ni x Nj x K`` candidates, then the mean of the squared deviations. The same
+    moments to float rounding, 8-9x faster here than ``var_mean``'s one-pass reduction
+    over the leading dimensions (``[4, 4, 4, S, 128, 4]`` at 2 threads: 1.15 -> 0.14 ms at
+    S = 4, 2.16 -> 0.24 ms at S = 8)."""
+    flat = candidates.flatten(0, 2)
+    mean = flat.mean(0)
+    deviation = flat - mean
+    return mean, deviation.mul_(deviation).mean(0)
 
 
 def _randn_like(x: Tensor, streams: SeedStreams | None) -> Tensor:
@@ -745,7 +759,7 @@ class SeedGroup:
         values = torch.cat([q0, rest], -1).permute(2, 1, 0, 3, 4)  # [Ni, K, S, M, H+1]
         continuation = VF.continuation_weights(terminated, done_prob)
         candidates = VF.candidate_targets(reward, rewards, values, continuation, self.gamma)
-        mean, var = VF.horizon_moments(candidates)
+        mean, var = _horizon_moments(candidates)
         target, weights = VF.expansion_target(
             mean, var, mix=self.mix, alpha=alpha, horizon=H, eps=self.variance_eps
         )
