@@ -156,7 +156,7 @@ class _Linear:
         if self.activation is not None:
             # on the product itself, before the view: an in-place op on a view makes
             # autograd rebase it (CopySlices), whose backward clones and zero-fills the
-            # whole output (a RAVE group of 8 at 2 threads: about 4 ms of 62 per update)
+            # whole output (128 of the ATen calls of a RAVE group update)
             inplace = inplace_activation(self.activation)
             y = self.activation(y) if inplace is None else inplace(y)
         return y.view(*lead, rows, fan_out) if not flat or y.dim() == 2 else y
