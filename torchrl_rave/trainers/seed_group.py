@@ -159,7 +159,7 @@ class _Linear:
             # whole output (128 of the ATen calls of a RAVE group update)
             inplace = inplace_activation(self.activation)
             y = self.activation(y) if inplace is None else inplace(y)
-        return y.view(*lead, rows, fan_out) if not flat or y.dim() == 2 else y
+        return y if y.dim() == len(lead) + 2 else y.view(*lead, rows, fan_out)
 
 
 def _run(layers: list[_Linear], x: Tensor, detach: bool = False) -> Tensor:
