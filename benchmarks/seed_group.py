@@ -4,6 +4,7 @@ learners against S separate single-learner updates, measured side by side in one
     python benchmarks/seed_group.py                      # rave and ddpg, S = 1, 2, 4, 8, 1 and 2 threads
     python benchmarks/seed_group.py --device cuda        # on a GPU
     python benchmarks/seed_group.py --algorithms rave --seeds 1 4 --threads 2
+    python benchmarks/seed_group.py --algorithms rave --seeds 4 8 --threads 2 --repeats 5
     python benchmarks/seed_group.py --streams-cost --algorithms rave --seeds 4 8 --threads 2
 
 For each algorithm, thread count and S, two workloads run interleaved (the median of
@@ -21,6 +22,9 @@ Reported per S: per-seed updates per second of each, their ratio (the group's sp
 the ATen calls one group update makes (a ``TorchDispatchMode`` count, forward, backward
 and optimiser steps; only the random draws, one call per seed each, grow with S), and the share of the dense matmul peak
 (counted matmul FLOPs x updates per second / peak, measured in the same process).
+With ``--repeats n`` each S is measured n times over (the separate learners' speed moves
+between runs on a shared machine); a row then reports the repeat with the median ratio
+and lists every repeat's ratio (``speedup_repeats``).
 Results go to stdout and ``benchmarks/seed_group.json`` (``--out``).
 """
 
@@ -107,7 +111,7 @@ def aten_calls(case: Case, steps: int = 3) -> float:
     return sum(mode.counts.values()) / steps
 
 
-def run(algorithms, seeds, threads, device, seconds: float) -> dict:
+def run(algorithms, seeds, threads, device, seconds: float, repeats: int = 1) -> dict:
     peak = {}
     rows = []
     for n_threads in threads:
@@ -121,10 +125,17 @@ def run(algorithms, seeds, threads, device, seconds: float) -> dict:
                 group.count_flops()
                 calls = aten_calls(group)
                 separate_calls = aten_calls(separate)
-                measure([separate, group], device, seconds)
-                sync(device)
-                per_seed_group = S / group.seconds
-                per_seed_separate = S / separate.seconds
+                runs = []  # (separate seconds, group seconds) of each repeat
+                for _ in range(repeats):
+                    measure([separate, group], device, seconds)
+                    sync(device)
+                    runs.append((separate.seconds, group.seconds))
+                ratios = [sep / grp for sep, grp in runs]
+                # the repeat with the median ratio (the lower one of an even count)
+                median = sorted(range(repeats), key=ratios.__getitem__)[(repeats - 1) // 2]
+                sep_s, group_s = runs[median]
+                per_seed_group = S / group_s
+                per_seed_separate = S / sep_s
                 row = {
                     "algorithm": algorithm,
                     "threads": n_threads,
@@ -132,22 +143,23 @@ def run(algorithms, seeds, threads, device, seconds: float) -> dict:
                     "separate_per_seed_updates_per_s": per_seed_separate,
                     "group_per_seed_updates_per_s": per_seed_group,
                     "speedup": per_seed_group / per_seed_separate,
-                    "group_ms": group.seconds * 1e3,
-                    "separate_ms": separate.seconds * 1e3,
+                    "speedup_repeats": ratios,
+                    "group_ms": group_s * 1e3,
+                    "separate_ms": sep_s * 1e3,
                     "group_aten_calls": calls,
                     "separate_aten_calls": separate_calls,
                     "group_gflop": group.flops / 1e9,
-                    "group_share_of_peak": group.flops / group.seconds / 1e9 / peak[n_threads],
-                    "separate_share_of_peak": group.flops
-                    / separate.seconds
-                    / 1e9
-                    / peak[n_threads],
+                    "group_share_of_peak": group.flops / group_s / 1e9 / peak[n_threads],
+                    "separate_share_of_peak": group.flops / sep_s / 1e9 / peak[n_threads],
                 }
                 rows.append(row)
+                spread = (
+                    f" (repeats {', '.join(f'{r:.2f}' for r in ratios)})" if repeats > 1 else ""
+                )
                 print(
                     f"{algorithm:5s} threads={n_threads} S={S}: per-seed updates/s "
                     f"separate {per_seed_separate:7.1f}  group {per_seed_group:7.1f}  "
-                    f"x{row['speedup']:.2f}   ATen calls/update {calls:.0f} "
+                    f"x{row['speedup']:.2f}{spread}   ATen calls/update {calls:.0f} "
                     f"(separate {separate_calls:.0f})   "
                     f"{row['group_share_of_peak']:.1%} of peak "
                     f"(separate {row['separate_share_of_peak']:.1%})",
@@ -203,8 +215,19 @@ def main(argv: list[str] | None = None) -> dict:
         help="instead: time the per-seed random streams against one shared stream "
         "(to benchmarks/seed_group_streams.json unless --out is given)",
     )
+    parser.add_argument(
+        "--repeats",
+        type=int,
+        default=1,
+        help="measure each S this many times; a row reports the repeat with the median "
+        "ratio and lists every repeat's (separate learners' speed moves between runs)",
+    )
     parser.add_argument("--out", type=Path, default=None)
     args = parser.parse_args(argv)
+    if args.repeats < 1:
+        parser.error(f"--repeats must be at least 1, got {args.repeats}")
+    if args.repeats > 1 and args.streams_cost:
+        parser.error("--repeats applies to the speed-up rows, not to --streams-cost")
     if args.out is None:
         name = "seed_group_streams.json" if args.streams_cost else "seed_group.json"
         args.out = ROOT / "benchmarks" / name
@@ -215,8 +238,10 @@ def main(argv: list[str] | None = None) -> dict:
         **provenance("seed_group.py", argv),
         "device": torch.cuda.get_device_name(device) if device.type == "cuda" else "cpu",
         "malloc": "keep_freed_memory" if malloc_kept else "default",
-        **(streams_cost if args.streams_cost else run)(
-            args.algorithms, args.seeds, threads, device, args.seconds
+        **(
+            streams_cost(args.algorithms, args.seeds, threads, device, args.seconds)
+            if args.streams_cost
+            else run(args.algorithms, args.seeds, threads, device, args.seconds, args.repeats)
         ),
     }
     args.out.write_text(json.dumps(result, indent=1) + "\n")

@@ -334,13 +334,14 @@ def test_optimizer_step_times_the_recipes_own_parameter_sets(tmp_path):
 
 def test_seed_group_benchmark_calls_do_not_grow_with_the_group(tmp_path):
     """benchmarks/seed_group.py: a group of 2 makes no more ATen calls per update than a
-    group of 1, while two separate updates make twice one's; its JSON says so."""
+    group of 1, while two separate updates make twice one's; its JSON says so, and with
+    ``--repeats`` a row is the repeat with the median ratio."""
     import seed_group
 
     out = tmp_path / "s.json"
     seed_group.main(
         ["--algorithms", "ddpg", "--seeds", "1", "2", "--threads", "1", "--seconds", "0.1",
-         "--out", str(out)]
+         "--repeats", "3", "--out", str(out)]
     )  # fmt: skip
     rows = {r["seeds"]: r for r in json.loads(out.read_text())["rows"]}
     assert rows[2]["group_aten_calls"] <= rows[1]["group_aten_calls"]
@@ -350,6 +351,10 @@ def test_seed_group_benchmark_calls_do_not_grow_with_the_group(tmp_path):
         assert r["speedup"] == pytest.approx(
             r["group_per_seed_updates_per_s"] / r["separate_per_seed_updates_per_s"]
         )
+        assert len(r["speedup_repeats"]) == 3
+        assert r["speedup"] == pytest.approx(sorted(r["speedup_repeats"])[1])
+    with pytest.raises(SystemExit):
+        seed_group.main(["--repeats", "0", "--out", str(out)])
 
 
 def test_seed_group_streams_cost_compares_the_two_ways_of_drawing(tmp_path):
