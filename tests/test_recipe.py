@@ -166,6 +166,7 @@ class TestConfigErrors:
             ("logger.backend=stdout", "logger.backend='stdout'.*one of"),
             ("network.num_critics=0", "network.num_critics=0"),
             ("threads=0", "threads=0 is invalid: expected null or an integer >= 1"),
+            ("env.seed=-1", "env.seed=-1 is invalid: expected an integer >= 0"),
         ],
     )
     def test_bad_value_named_before_training(self, override, message, tmp_path):

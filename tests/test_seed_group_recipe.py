@@ -96,6 +96,9 @@ def test_refuses_what_a_group_cannot_run():
         train(make_cfg(*PENDULUM, "algorithm=ppo", "seeds=[0,1]"), "unused")
     with pytest.raises(ConfigError, match="distinct seeds"):
         train(make_cfg(*PENDULUM, "algorithm=ddpg", "seeds=[1,1]"), "unused")
+    # gymnasium refuses a negative seed only at the first reset; the config says so first
+    with pytest.raises(ConfigError, match=r"seeds=\[0, -1\] is invalid: expected null or a list"):
+        train(make_cfg(*PENDULUM, "algorithm=ddpg", "seeds=[0,-1]"), "unused")
 
 
 def test_kill_and_resume_continues_every_seed(tmp_path):

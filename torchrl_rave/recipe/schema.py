@@ -62,7 +62,11 @@ class EnvConfig:
             "`module` first (which registers a custom env in every worker process too)"
         ),
     )
-    seed: int = key(0, "seed of torch, the training env and the evaluation env")
+    seed: int = key(
+        0,
+        "seed of torch, the training env and the evaluation env (gymnasium takes seeds >= 0)",
+        NON_NEGATIVE_INT,
+    )
     reward_scale: float = key(
         1.0,
         (
@@ -449,6 +453,10 @@ class RecipeConfig:
             "`<run dir>/seed<s>/` "
             "with `env.seed` set to it, every update batched across the seeds "
             "(`torchrl_rave.trainers.SeedGroup`); null: one run of `env.seed`"
+        ),
+        Rule(
+            lambda v: v is None or all(NON_NEGATIVE_INT.test(x) for x in v),
+            "null or a list of integers >= 0",
         ),
     )
     threads: int | None = key(
