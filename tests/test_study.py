@@ -321,6 +321,13 @@ def test_report_of_value_error_contrasts_and_diagnostics_by_hand(tmp_path):
     # a contrast must name two of the tasks
     with pytest.raises(ValueError, match="contrast"):
         study.load_study(write_study(tmp_path, contrasts=[["Hopper-v5", "C"]]))
+    # seeds and the budget are checked before any cell starts
+    for bad in ([], [0, 0], [0, -1], [0, 1.5]):
+        with pytest.raises(ValueError, match="seeds must be distinct integers >= 0"):
+            study.load_study(write_study(tmp_path, seeds=bad))
+    for bad in (0, -100, 2.5):
+        with pytest.raises(ValueError, match="frames must be an integer >= 1"):
+            study.load_study(write_study(tmp_path, frames=bad))
 
 
 def test_report_at_chooses_the_table_frames_and_must_be_evaluation_frames(tmp_path):

@@ -9,6 +9,8 @@ from pathlib import Path
 
 from omegaconf import DictConfig, OmegaConf
 
+from torchrl_rave._checks import NON_NEGATIVE_INT, POSITIVE_INT
+
 __all__ = ["Task", "load_study", "report_frames", "result_dir", "tasks"]
 
 
@@ -54,6 +56,11 @@ def load_study(path: Path) -> DictConfig:
     for entry in study.tasks:
         if not isinstance(entry, str) and not {"label", "env"} <= set(entry):
             raise ValueError(f"{path}: a task must be an env id or have a label and an env")
+    seeds = list(study.seeds)
+    if not seeds or len(set(seeds)) != len(seeds) or not all(map(NON_NEGATIVE_INT.test, seeds)):
+        raise ValueError(f"{path}: seeds must be distinct integers >= 0, got {seeds}")
+    if not POSITIVE_INT.test(study.frames):
+        raise ValueError(f"{path}: frames must be an integer >= 1, got {study.frames!r}")
     labels = [t.label for t in tasks(study)]
     if len(set(labels)) != len(labels):
         raise ValueError(f"{path}: task labels repeat: {labels}")
