@@ -89,6 +89,16 @@ def test_each_seed_is_an_ordinary_run(tmp_path):
         assert policy is not None
         losses.append(read_scalar(run, "train/loss_critic")[1])
     assert not (losses[0] == losses[1]).all()
+    # the group's own directory is not a run: the errors say what to pass instead
+    with pytest.raises(FileNotFoundError, match=r"seed group's directory.*seed0.*seed1"):
+        load_policy(tmp_path)
+    steve = [*PENDULUM, "algorithm=steve", "collector.total_frames=800"]
+    with pytest.raises(ConfigError, match=r"seeds is \[0, 2\] but the group was started with "
+                                          r"\[0, 1\]"):  # fmt: skip
+        train(make_cfg(*steve, "seeds=[0,2]", f"resume={tmp_path}"), "unused")
+    with pytest.raises(ConfigError, match="holds one run, not a seed group"):
+        train(make_cfg(*steve, "seeds=[0,1]", f"resume={tmp_path / 'seed0'}"), "unused")
+    assert RunCheckpoint(tmp_path / "seed0").read("counters")["frames"] == 600  # untouched
 
 
 def test_refuses_what_a_group_cannot_run():

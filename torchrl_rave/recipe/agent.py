@@ -171,6 +171,14 @@ def load_agent(
     checkpoint = RunCheckpoint(run_dir)
     path = checkpoint.latest()  # the newest undamaged one
     if path is None:
+        from torchrl_rave.recipe.group import GROUP_FILE, group_config
+
+        if (Path(run_dir) / GROUP_FILE).is_file():  # a seed group's root: one run per seed
+            runs = [str(Path(run_dir) / f"seed{s}") for s in group_config(run_dir)["seeds"]]
+            raise FileNotFoundError(
+                f"{run_dir} is a seed group's directory, which holds one run per seed; "
+                f"load one of them: {runs}"
+            )
         raise FileNotFoundError(f"no checkpoint under {checkpoint.root}")
     cfg = OmegaConf.create(checkpoint.read("config", path))
     if "ray" in cfg:

@@ -155,7 +155,18 @@ def train_group(cfg: DictConfig, run_dir: str) -> dict[str, float]:
     cfg = cfg.copy()
     root = Path(cfg.resume or run_dir)
     if cfg.resume:
+        if not (root / GROUP_FILE).is_file():
+            raise ConfigError([
+                f"resume={str(root)!r} holds one run, not a seed group ({GROUP_FILE} is "
+                "missing): resume it without seeds=, or start a new group elsewhere"
+            ])  # fmt: skip
         saved = OmegaConf.create(group_config(root))
+        if list(saved.seeds) != list(cfg.seeds):
+            raise ConfigError([
+                f"resume={str(root)!r}: config key seeds is {list(cfg.seeds)} but the group "
+                f"was started with {list(saved.seeds)}; it cannot change on resume (train "
+                "other seeds as a new group)"
+            ])  # fmt: skip
         check_resumable(cfg, saved)
         cfg.replay_buffer.size = saved.replay_buffer.size
     else:
