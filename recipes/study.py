@@ -230,6 +230,11 @@ def main(argv: list[str] | None = None):
     )
     sub.choices["report"].add_argument("--figures", type=Path, default=ROOT / "docs" / "figures")
     args = parser.parse_args(argv)
+    for config in args.config if args.command == "run" else [args.config]:
+        if not config.is_file():
+            parser.error(f"--config {config}: no such file")
+    if args.command == "run" and args.jobs < 1:
+        parser.error(f"--jobs must be at least 1, got {args.jobs}")
     return run(args) if args.command == "run" else report(args)
 
 

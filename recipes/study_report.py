@@ -121,6 +121,14 @@ def section(caption: str, columns: list[str], rows: list[str]) -> list[str]:
 def report(args) -> str:
     study = load_study(args.config)
     out = args.figures
+    # an empty report would overwrite the committed tables and figures with n/a
+    if not any(
+        group(study, args.results, t.label, a) for t in tasks(study) for a in study.algorithms
+    ):
+        raise ValueError(
+            f"{study.name}: no finished cell under --results {args.results}; nothing to "
+            f"report, and nothing in {out} was changed"
+        )
     out.mkdir(parents=True, exist_ok=True)
     at = report_frames(study)
     # the published reference is at 100k frames: beside a shorter study it would mislead

@@ -330,6 +330,25 @@ def test_report_of_value_error_contrasts_and_diagnostics_by_hand(tmp_path):
             study.load_study(write_study(tmp_path, frames=bad))
 
 
+def test_a_report_without_cells_or_a_bad_command_line_changes_nothing(tmp_path):
+    """A results directory with none of the study's cells (a typo in --results) is an
+    error before anything is written: the committed tables are not replaced by n/a."""
+    figures = tmp_path / "figures"
+    figures.mkdir()
+    (figures / "tiny.md").write_text("the committed table")
+    config = write_study(tmp_path)
+    for results in (tmp_path / "missing", tmp_path):
+        with pytest.raises(ValueError, match="tiny: no finished cell under --results"):
+            study.main(["report", "--config", str(config), "--results", str(results),
+                        "--figures", str(figures)])  # fmt: skip
+    assert [p.name for p in figures.iterdir()] == ["tiny.md"]
+    assert (figures / "tiny.md").read_text() == "the committed table"
+    for argv in (["report", "--config", str(tmp_path / "nope.yaml")],
+                 ["run", "--config", str(config), "--jobs", "0"]):  # fmt: skip
+        with pytest.raises(SystemExit):
+            study.main(argv)
+
+
 def test_report_at_chooses_the_table_frames_and_must_be_evaluation_frames(tmp_path):
     results, figures = tmp_path / "results", tmp_path / "figures"
     for seed, (a, b, c) in enumerate([(1, 2, 3), (3, 4, 5)]):
