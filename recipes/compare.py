@@ -19,7 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
-from torchrl_rave.recipe.runs import Cell, GridStopped, launch_grid, value_logged_at
+from torchrl_rave.recipe.runs import Cell, GridStopped, check_cells, launch_grid, value_logged_at
 
 RECIPE = Path(__file__).resolve().parent / "rave_mujoco.py"
 
@@ -70,6 +70,12 @@ def run(cells: list[Cell], jobs: int) -> None:
     todo = [c for c in cells if not c.finished()]
     if not todo:
         return
+    if jobs < 1:
+        raise SystemExit(f"--jobs must be at least 1, got {jobs}")
+    try:
+        check_cells(todo, RECIPE.parent)  # every run's config, before any starts
+    except ValueError as bad:
+        raise SystemExit(str(bad)) from None
     print(f"{len(todo)} runs to go, {jobs} at a time, logs in <run dir>/stdout.log")
 
     def report(c: Cell, code: int) -> None:

@@ -37,7 +37,7 @@ from study_report import report
 
 from torchrl_rave.recipe.checkpoint import RunCheckpoint
 from torchrl_rave.recipe.group import GROUP_ALGORITHMS
-from torchrl_rave.recipe.runs import Cell, GridStopped, launch_grid, train_seconds
+from torchrl_rave.recipe.runs import Cell, GridStopped, check_cells, launch_grid, train_seconds
 from torchrl_rave.recipe.studies import load_study, result_dir, tasks
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -202,6 +202,7 @@ def run(args) -> None:
         done(c, 0)
     try:
         todo = [c for c in cells if not c.finished()]
+        check_cells(todo, RECIPE.parent)  # every cell's config, before any starts
         record = {"commit": git(ROOT, "rev-parse", "HEAD")}  # written down at each start
         launch_grid(RECIPE, todo, args.jobs, on_done=done, record=record)
     except GridStopped as stop:

@@ -463,6 +463,28 @@ class TestCompare:
         compare.main(args)  # both runs finished: nothing relaunched
         assert "runs to go" not in capsys.readouterr().out
 
+    def test_every_run_is_checked_before_any_starts(self, tmp_path):
+        """A mistake in a grid is one error naming each problem once and the cells that
+        have it, before any run directory is made; not a failure per run."""
+        import compare
+
+        args = ["--envs", "Hoper-v5", "Pendulum-v1", "--algorithms", "ddpg", "dqn",
+                "--seeds", "0", "-1", "--frames", "300", "--out", str(tmp_path / "grid")]  # fmt: skip
+        with pytest.raises(SystemExit) as stop:
+            compare.main(args)
+        message = str(stop.value)
+        assert message.startswith("3 problems in the config:")
+        assert "env.name='Hoper-v5' is not a registered gymnasium id" in message
+        assert "algorithm='dqn' is invalid" in message
+        assert (
+            f"env.seed=-1 is invalid: expected an integer >= 0 (in 4 cells: {tmp_path}" in message
+        )
+        good = ["--envs", "Pendulum-v1", "--algorithms", "ddpg", "--seeds", "0",
+                "--frames", "300", "--out", str(tmp_path / "grid")]  # fmt: skip
+        with pytest.raises(SystemExit, match="Could not override 'estimator.hoirzon'"):
+            compare.main([*good, "--", "estimator.hoirzon=3"])
+        assert not (tmp_path / "grid").exists()
+
     def test_reference_column_is_labelled(self, tmp_path):
         import compare
 

@@ -240,7 +240,8 @@ def test_task_labels_must_differ(tmp_path):
 def test_run_queues_several_studies_in_one_grid(tmp_path, capsys, monkeypatch):
     seen = []
     monkeypatch.setattr(study, "launch_grid", lambda script, todo, jobs, **kw: seen.extend(todo))
-    a = write_study(tmp_path, name="a", algorithms=["ddpg"], seeds=[0])
+    # 300 frames: a run's budget holds at least one batch of 250 (checked before any starts)
+    a = write_study(tmp_path, name="a", algorithms=["ddpg"], seeds=[0], frames=300)
     b = tmp_path / "b.yaml"
     b.write_text(json.dumps({"name": "b", "tasks": ["Walker2d-v5"], "algorithms": ["td3"],
                              "seeds": [0, 1], "frames": 300}))  # fmt: skip
@@ -440,7 +441,7 @@ def test_group_runs_a_task_and_algorithms_seeds_as_one_cell_committed_per_seed(t
 def test_group_leaves_what_a_group_cannot_train_as_single_cells(tmp_path, monkeypatch):
     seen = []
     monkeypatch.setattr(study, "launch_grid", lambda script, todo, jobs, **kw: seen.extend(todo))
-    config = write_study(tmp_path, algorithms=["rave", "ppo"], seeds=[0, 1, 2])
+    config = write_study(tmp_path, algorithms=["rave", "ppo"], seeds=[0, 1, 2], frames=300)
     done = tmp_path / "results" / "tiny" / "Hopper-v5" / "rave" / "seed1"
     done.mkdir(parents=True)
     (done / "cell.json").write_text("{}")

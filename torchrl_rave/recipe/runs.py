@@ -24,6 +24,7 @@ from torchrl_rave.recipe.checkpoint import PREFIX, DamagedCheckpoint, RunCheckpo
 __all__ = [
     "Cell",
     "GridStopped",
+    "check_cells",
     "curves",
     "launch_grid",
     "parse_groups",
@@ -210,6 +211,41 @@ class Cell:
 
 
 STARTS = "starts.jsonl"  # in a run directory, one line per start of its run
+
+
+def check_cells(cells: Sequence[Cell], config_dir: str | Path, config_name: str = "config") -> None:
+    """Checks the config every unfinished cell's run will start with, before any starts.
+
+    Each cell's overrides and frame budget, as :func:`launch_grid` passes them, are composed
+    with the recipe's ``config_dir/config_name`` and checked by
+    :func:`~torchrl_rave.recipe.config.check_config`. A mistake in a grid (an env id, an
+    algorithm, an extra key) would otherwise fail each of its runs in turn, each with its
+    own log; here every problem is raised at once, as one
+    :class:`~torchrl_rave.recipe.config.ConfigError` naming the cells."""
+    from hydra import compose, initialize_config_dir
+
+    from torchrl_rave.recipe.config import ConfigError, check_config
+
+    where: dict[str, list[Path]] = {}  # each problem, and the cells that have it
+    with initialize_config_dir(config_dir=str(Path(config_dir).resolve()), version_base="1.3"):
+        for cell in cells:
+            if cell.finished():
+                continue
+            overrides = [*cell.overrides, f"collector.total_frames={cell.frames}"]
+            try:
+                check_config(compose(config_name, overrides=overrides))
+            except ConfigError as e:
+                for problem in e.problems:
+                    where.setdefault(problem, []).append(cell.run_dir)
+            except Exception as e:  # hydra's own: a key the config does not have, bad syntax
+                problem = f"{type(e).__name__}: {e}".replace("\n", " ")
+                where.setdefault(problem, []).append(cell.run_dir)
+    if where:
+        raise ConfigError([
+            f"{problem} (in {len(dirs)} cell{'s' if len(dirs) > 1 else ''}: {dirs[0]}"
+            f"{', ...' if len(dirs) > 1 else ''})"
+            for problem, dirs in where.items()
+        ])  # fmt: skip
 
 
 def _start_cell(script: Path, cell: Cell, record: dict) -> subprocess.Popen:
