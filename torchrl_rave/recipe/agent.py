@@ -165,21 +165,13 @@ def load_agent(
     a module (``env.name="module:EnvId"``) or open a file by name (a string in
     ``env.kwargs``) raises :class:`~torchrl_rave.recipe.trust.UntrustedRunConfig` unless
     ``trust=True`` says that the run directory is trusted (:mod:`torchrl_rave.recipe.trust`)."""
-    from torchrl_rave.recipe.checkpoint import RunCheckpoint
+    from torchrl_rave.recipe.checkpoint import RunCheckpoint, missing_checkpoint
     from torchrl_rave.recipe.trust import check_trusted
 
     checkpoint = RunCheckpoint(run_dir)
     path = checkpoint.latest()  # the newest undamaged one
     if path is None:
-        from torchrl_rave.recipe.group import GROUP_FILE, group_config
-
-        if (Path(run_dir) / GROUP_FILE).is_file():  # a seed group's root: one run per seed
-            runs = [str(Path(run_dir) / f"seed{s}") for s in group_config(run_dir)["seeds"]]
-            raise FileNotFoundError(
-                f"{run_dir} is a seed group's directory, which holds one run per seed; "
-                f"load one of them: {runs}"
-            )
-        raise FileNotFoundError(f"no checkpoint under {checkpoint.root}")
+        raise missing_checkpoint(run_dir)
     cfg = OmegaConf.create(checkpoint.read("config", path))
     if "ray" in cfg:
         cfg.ray.address = None  # loading a policy connects nowhere

@@ -32,6 +32,7 @@ __all__ = [
     "check_run_directory",
     "config_for_resume",
     "exclusive_run",
+    "missing_checkpoint",
     "saved_config",
 ]
 
@@ -508,6 +509,20 @@ class _StateReader:
 
     def load_state_dict(self, state: dict) -> None:
         self.state = state
+
+
+def missing_checkpoint(run_dir: str | Path) -> FileNotFoundError:
+    """The error for a directory with no checkpoint to read. A seed group's own directory
+    (``seeds=``) has none: its runs are its ``seed<s>/`` directories, which it names."""
+    group_file = Path(run_dir) / "group.json"
+    if group_file.is_file():
+        seeds = json.loads(group_file.read_text())["config"]["seeds"]
+        runs = [str(Path(run_dir) / f"seed{s}") for s in seeds]
+        return FileNotFoundError(
+            f"{run_dir} is a seed group's directory, which holds one run per seed; "
+            f"use one of them: {runs}"
+        )
+    return FileNotFoundError(f"no checkpoint under {Path(run_dir) / 'checkpoints'}")
 
 
 def saved_config(run_dir: str | Path, defaults: DictConfig | None = None) -> DictConfig:

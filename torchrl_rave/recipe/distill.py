@@ -21,7 +21,7 @@ from tensordict.nn import TensorDictModuleBase
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
 from torchrl_rave.recipe.agent import make_actor, make_agent, make_env, make_replay_buffer
-from torchrl_rave.recipe.checkpoint import RunCheckpoint, saved_config
+from torchrl_rave.recipe.checkpoint import RunCheckpoint, missing_checkpoint, saved_config
 from torchrl_rave.recipe.schema import defaults
 
 __all__ = ["collect_pairs", "distill_actor", "distill_run"]
@@ -129,7 +129,7 @@ def distill_run(
     source = RunCheckpoint(run_dir)
     path = source.latest()
     if path is None:
-        raise FileNotFoundError(f"no checkpoint under {source.root}")
+        raise missing_checkpoint(run_dir)
     cfg = saved_config(run_dir, defaults())
     if not trust:
         check_trusted(
