@@ -9,7 +9,9 @@ Each positional argument is ``LABEL=PATTERN``: the run directories matching the 
 ``rave_mujoco.py`` writes (``<run>/<exp_name>/scalars/<metric>.csv``). Curves are drawn on
 the steps every seed of a group has logged; the shaded band is ± one standard deviation
 over seeds. The table gives, at each ``--at`` frame count, the mean ± std over seeds of the
-last value logged at or before it. ``--max-frames`` cuts every curve at that frame count, to
+last value logged at or before it; a group whose seeds have not all logged a step at or
+beyond that frame count (a run stopped early, a shorter budget) reads ``n/a`` there, with
+the step its curve ends at. ``--max-frames`` cuts every curve at that frame count, to
 put longer runs beside shorter ones at the shorter budget.
 """
 
@@ -43,6 +45,9 @@ def table(data: dict, at: list[int], metric: str) -> str:
     for label, (steps, values) in data.items():
         cells = []
         for frame in at:
+            if frame > steps[-1]:  # not reached by every seed: no value to report there
+                cells.append(f"n/a (ends at {int(steps[-1]):,})")
+                continue
             v = value_at(steps, values, frame)
             cells.append("n/a" if np.isnan(v).any() else f"{v.mean():.1f} ± {v.std():.1f}")
         lines.append(f"| {label} | {values.shape[0]} | " + " | ".join(cells) + " |")

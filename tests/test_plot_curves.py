@@ -29,15 +29,18 @@ class TestPlotCurves:
                 f"rave={tmp_path}/a/seed*",
                 f"ddpg={tmp_path}/b/seed*",
                 "--at",
+                "200",
                 "250",
                 "300",
                 "--out",
                 str(out),
             ]
         )
-        # at 250 the last values are 3 and 5 (mean 4, std 1); at 300: 5 and 9
-        assert "| rave | 2 | 4.0 ± 1.0 | 7.0 ± 2.0 |" in text
-        assert "| ddpg | 1 | 2.0 ± 0.0 | 2.0 ± 0.0 |" in text
+        # at 200 and 250 the last values are 3 and 5 (mean 4, std 1); at 300: 5 and 9
+        assert "| rave | 2 | 4.0 ± 1.0 | 4.0 ± 1.0 | 7.0 ± 2.0 |" in text
+        # ddpg's log ends at 200: nothing shows it ran to 250 or 300, so no value there
+        # (before, both cells silently repeated its value at 200)
+        assert "| ddpg | 1 | 2.0 ± 0.0 | n/a (ends at 200) | n/a (ends at 200) |" in text
         assert out.read_bytes()[:4] == b"\x89PNG"
 
     def test_max_frames_cuts_longer_runs(self, tmp_path, capsys):
