@@ -106,6 +106,13 @@ class TestAllProblemsAtOnce:
         assert len(caught.value.problems) == 3
         check_command_line(["env.name=Hopper-v5", "ray.worker_resources.actors=1"])  # fine
 
+    def test_command_line_seed_group_with_env_seed_is_named(self):
+        # the group seeds each run from seeds=; a given env.seed would be silently ignored
+        with pytest.raises(ConfigError, match=r"seeds=\[0, 1\] and env.seed=3 are both given"):
+            check_command_line(["seeds=[0,1]", "env.seed=3"])
+        check_command_line(["seeds=[0,1]"])  # fine
+        check_command_line(["seeds=null", "env.seed=3"])  # fine: one run
+
     def test_three_bad_keys_one_message_no_traceback_no_work(self, tmp_path):
         run = tmp_path / "run"
         done = subprocess.run(

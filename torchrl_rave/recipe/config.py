@@ -315,6 +315,12 @@ def check_command_line(overrides: list[str]) -> None:
             values[key] = o.value()
         elif not any(key.startswith(f"{d}.") for d in dict_keys):
             problems.append(f"config key {key} is not a key of the recipe")
+    if values.get("seeds") is not None and "env.seed" in values:
+        # a group sets each run's env.seed from seeds: the given one would be ignored
+        problems.append(
+            f"config keys seeds={values['seeds']} and env.seed={values['env.seed']} are both "
+            "given: each run of a seed group takes its env.seed from seeds; drop env.seed="
+        )
     if not resume and preset in PRESETS:
         cfg = default_config(preset=preset)
         OmegaConf.set_struct(cfg, False)
