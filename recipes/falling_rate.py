@@ -96,7 +96,7 @@ def main(argv: list[str] | None = None) -> str:
         "--eval-episodes",
         type=int,
         default=None,
-        help="episodes behind each logged rate (default: the run's eval.episodes)",
+        help="episodes behind each logged rate, >= 1 (default: the run's eval.episodes)",
     )
     parser.add_argument("--out", type=Path, default=Path("falling_rate.png"))
     parser.add_argument("--title", default=None)
@@ -108,6 +108,8 @@ def main(argv: list[str] | None = None) -> str:
     args = parser.parse_args(argv)
     if args.episodes < 0:
         parser.error("--episodes must be >= 0")
+    if args.eval_episodes is not None and args.eval_episodes < 1:
+        parser.error("--eval-episodes must be >= 1 (leave it out to read each run's eval.episodes)")
     try:
         groups = parse_groups(args.groups)
     except (ValueError, FileNotFoundError) as e:

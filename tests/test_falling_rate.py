@@ -87,3 +87,8 @@ def test_help_and_bad_pattern(capsys):
     with pytest.raises(SystemExit):
         falling_rate.main(["rave=/nonexistent/run*", "--episodes", "0"])
     assert "no run directory matches" in capsys.readouterr().err
+    # a count behind the logged rates below 1 would make negative falls, not an error
+    for bad in ("0", "-5"):
+        with pytest.raises(SystemExit):
+            falling_rate.main(["rave=/nonexistent/run*", "--eval-episodes", bad])
+        assert "--eval-episodes must be >= 1" in capsys.readouterr().err

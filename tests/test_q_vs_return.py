@@ -59,3 +59,12 @@ def test_from_checkpoints(tmp_path):
     assert out.read_bytes()[:4] == b"\x89PNG"
     with pytest.raises(FileNotFoundError, match="no checkpoint"):
         q_vs_return.main([f"x={tmp_path}", "--out", str(out)])
+
+
+def test_bad_counts_are_named(capsys):
+    # a negative --drop-tail would keep the truncated episodes' tails, not cut them
+    for flag, value, problem in (("--episodes", "0", "--episodes must be >= 1"),
+                                 ("--drop-tail", "-5", "--drop-tail must be >= 0")):  # fmt: skip
+        with pytest.raises(SystemExit):
+            q_vs_return.main(["x=/nonexistent", flag, value])
+        assert problem in capsys.readouterr().err
