@@ -108,6 +108,8 @@ def main(argv=None) -> dict:
     args = parser.parse_args(argv)
     if args.every < 1:
         parser.error(f"--every must be >= 1, got {args.every}")
+    if args.max_steps < 1:
+        parser.error(f"--max-steps must be >= 1, got {args.max_steps}")
     if args.run:
         policy, kwargs = trained_policy(args.run, args.trust)
         title = f"policy of {args.run}"

@@ -76,6 +76,12 @@ def test_the_command_writes_a_run_that_trains_on(tmp_path):
     with pytest.raises(ValueError, match="names no target part"):
         distill.main([str(run), "--out", str(tmp_path / "auto"), "--frames", "10"])
     assert not (tmp_path / "auto").exists()
+    # bad counts and ranges are named before the run is read or a pair collected
+    with pytest.raises(ValueError, match=r"frames=0: expected an integer >= 1; steps=-1: "
+                                         r".*low=1.0, high=0.0: .*low <= high"):  # fmt: skip
+        distill.main([str(tmp_path / "none"), "--out", str(tmp_path / "bad"), "--frames", "0",
+                      "--steps", "-1", "--low", "1", "--high", "0"])  # fmt: skip
+    assert not (tmp_path / "bad").exists()
     with pytest.raises(FileExistsError, match="not empty"):
         distill.main([str(run), "--out", str(out), "--target", "0:1"])
     # training goes on from it

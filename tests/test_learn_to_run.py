@@ -168,7 +168,7 @@ def test_the_id_is_listed_and_its_extra_named(hide_modules, tmp_path):
         import_env_family("LearnToRun-v0")
 
 
-def test_plot_runner_draws_an_episode(tmp_path):
+def test_plot_runner_draws_an_episode(tmp_path, capsys):
     import plot_runner
 
     out = tmp_path / "runner.png"
@@ -178,3 +178,8 @@ def test_plot_runner_draws_an_episode(tmp_path):
     assert 9.5 < episode["return"] < 10.5
     assert [len(line) for line in episode["frames"][0]] == [3, 6, 6]
     assert out.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    # no steps to draw is named, not an empty figure with a return of 0
+    with pytest.raises(SystemExit, match="2"):
+        plot_runner.main(["--max-steps", "0", "--out", str(tmp_path / "none.png")])
+    assert "--max-steps must be >= 1, got 0" in capsys.readouterr().err
+    assert not (tmp_path / "none.png").exists()

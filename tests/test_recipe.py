@@ -481,6 +481,10 @@ class TestCompare:
         )
         good = ["--envs", "Pendulum-v1", "--algorithms", "ddpg", "--seeds", "0",
                 "--frames", "300", "--out", str(tmp_path / "grid")]  # fmt: skip
+        # a seed given twice would put two runs at once into one directory
+        with pytest.raises(SystemExit, match=r"2 cells would write one run directory, "
+                                             r".*grid/Pendulum-v1/ddpg/seed0 \(a seed"):  # fmt: skip
+            compare.main([*good, "--seeds", "0", "0", "--jobs", "2"])
         with pytest.raises(SystemExit, match="Could not override 'estimator.hoirzon'"):
             compare.main([*good, "--", "estimator.hoirzon=3"])
         assert not (tmp_path / "grid").exists()

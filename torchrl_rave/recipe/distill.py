@@ -123,6 +123,12 @@ def distill_run(
     fit's first and last losses."""
     from torchrl_rave.recipe.trust import check_trusted
 
+    problems = [f"{name}={value}: expected an integer >= 1"
+                for name, value in (("frames", frames), ("steps", steps)) if value < 1]  # fmt: skip
+    if low is not None and high is not None and not low <= high:
+        problems.append(f"low={low}, high={high}: the target range must have low <= high")
+    if problems:  # before the run is read or any pair collected
+        raise ValueError("; ".join(problems))
     out = Path(out_dir)
     if out.exists() and any(out.iterdir()):
         raise FileExistsError(f"{out} exists and is not empty: distillation writes a new run")

@@ -12,6 +12,7 @@ import subprocess
 import sys
 import threading
 import time
+from collections import Counter
 from collections.abc import Callable, Sequence
 from concurrent.futures import ThreadPoolExecutor, wait
 from dataclasses import dataclass, field
@@ -227,6 +228,12 @@ def check_cells(cells: Sequence[Cell], config_dir: str | Path, config_name: str 
     from torchrl_rave.recipe.config import ConfigError, check_config
 
     where: dict[str, list[Path]] = {}  # each problem, and the cells that have it
+    counts = Counter(Path(cell.run_dir) for cell in cells)
+    shared = [  # two runs at once in one directory would corrupt both
+        f"{n} cells would write one run directory, {run_dir} (a seed, env or algorithm given "
+        "twice?)"
+        for run_dir, n in counts.items() if n > 1
+    ]  # fmt: skip
     with initialize_config_dir(config_dir=str(Path(config_dir).resolve()), version_base="1.3"):
         for cell in cells:
             if cell.finished():
@@ -240,8 +247,8 @@ def check_cells(cells: Sequence[Cell], config_dir: str | Path, config_name: str 
             except Exception as e:  # hydra's own: a key the config does not have, bad syntax
                 problem = f"{type(e).__name__}: {e}".replace("\n", " ")
                 where.setdefault(problem, []).append(cell.run_dir)
-    if where:
-        raise ConfigError([
+    if where or shared:
+        raise ConfigError(shared + [
             f"{problem} (in {len(dirs)} cell{'s' if len(dirs) > 1 else ''}: {dirs[0]}"
             f"{', ...' if len(dirs) > 1 else ''})"
             for problem, dirs in where.items()
