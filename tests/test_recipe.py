@@ -368,14 +368,19 @@ class TestCheckpoints:
         assert 0 < frames < 100000 and frames % 100 == 0  # a whole number of batches
         assert f"stopped at frame {frames}; resume with resume={tmp_path}" in out
 
-    def test_resume_of_a_finished_run_reproduces_its_evaluation(self, tmp_path):
+    def test_resume_of_a_finished_run_reproduces_its_evaluation(self, tmp_path, capsys):
         # Resuming from the final checkpoint collects nothing and evaluates the restored
         # policy with the same evaluation seed: a policy not restored exactly would give a
         # different (continuous-valued) Hopper return.
         overrides = [*TINY, "algorithm=steve", "env.name=Hopper-v5", "collector.total_frames=300"]
         first = rave_mujoco.train(make_cfg(*overrides), str(tmp_path))
+        capsys.readouterr()
         again = rave_mujoco.train(make_cfg(*overrides, f"resume={tmp_path}"), "unused")
         assert again["frames"] == 300 and again["updates"] == first["updates"]
+        # and says so, with the key to raise
+        assert "nothing to train: the run is at 300 frames and collector.total_frames=300" in (
+            capsys.readouterr().out
+        )
         assert again["eval/return"] == first["eval/return"]
         checkpoint = RunCheckpoint(tmp_path)
         # the world-model normalisers saw all 300 stored frames, and the resolved buffer

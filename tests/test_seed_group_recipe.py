@@ -66,7 +66,7 @@ def test_each_seed_of_a_group_is_its_single_run(algorithm, seeds, tmp_path):
                                            msg=f"seed {seed}: {name}")  # fmt: skip
 
 
-def test_each_seed_is_an_ordinary_run(tmp_path):
+def test_each_seed_is_an_ordinary_run(tmp_path, capsys):
     """Two seeds in one process: each seed directory is a run every reader takes as it is
     (its metrics documented, its checkpoint's config naming its seed, its policy loadable),
     and the seeds learned apart (different critics)."""
@@ -89,6 +89,13 @@ def test_each_seed_is_an_ordinary_run(tmp_path):
         assert policy is not None
         losses.append(read_scalar(run, "train/loss_critic")[1])
     assert not (losses[0] == losses[1]).all()
+    # resuming the finished group trains nothing, says so, and evaluates each seed's
+    # restored policy as its last evaluation did
+    again = train(make_cfg(*PENDULUM, "algorithm=steve", "seeds=[0,1]", f"resume={tmp_path}"),
+                  "unused")  # fmt: skip
+    assert "nothing to train: the group is at 600 frames" in capsys.readouterr().out
+    for seed in (0, 1):
+        assert again[f"seed{seed}/eval/return"] == out[f"seed{seed}/eval/return"]
     # the group's own directory is not a run: the errors say what to pass instead
     with pytest.raises(FileNotFoundError, match=r"group's directory.*one of them.*seed0.*seed1"):
         load_policy(tmp_path)

@@ -235,7 +235,10 @@ def train_group(cfg: DictConfig, run_dir: str) -> dict[str, float]:
     with StopRequest() as stop, contextlib.ExitStack() as on_error:
         for s in seeds:  # on an error, no seed's workers outlive the run
             on_error.enter_context(shutdown_on_error(lambda s=s: s.collector))
-        for i, s in enumerate(seeds):
+        # nothing to collect for a group resumed at or past its total (a collector of no
+        # frames would fail), as the single run's loop does not start then
+        todo = counters["frames"] < total
+        for i, s in enumerate(seeds if todo else []):
             with rng.use(i):
                 s.collector = make_collector(
                     s.cfg, s.env, s.agent.policy, device, counters["frames"]
@@ -243,10 +246,10 @@ def train_group(cfg: DictConfig, run_dir: str) -> dict[str, float]:
         iterators = [
             guarded_batches(s.collector, s.cfg, save_checkpoint, lambda: counters["frames"],
                             str(s.dir))
-            for s in seeds
+            for s in (seeds if todo else [])
         ]  # fmt: skip
         t_collect = time.perf_counter()
-        for batches in _lockstep(iterators, rng):
+        for batches in _lockstep(iterators, rng) if todo else ():
             collect_s = time.perf_counter() - t_collect
             data = [b.reshape(-1) for b in batches]
             for s, d in zip(seeds, data, strict=True):
@@ -300,6 +303,11 @@ def train_group(cfg: DictConfig, run_dir: str) -> dict[str, float]:
     if stop.requested:
         print(f"stopped at frame {counters['frames']}; resume with resume={root}")
     elif not last[0]:  # a group resumed from its final checkpoint
+        print(
+            f"nothing to train: the group is at {counters['frames']} frames and "
+            f"collector.total_frames={cfg.collector.total_frames} (raise it to train on); "
+            "evaluating its last checkpoints"
+        )
         for i, s in enumerate(seeds):
             with rng.use(i):
                 s.eval_env.set_seed(s.seed + 1_000_003 + counters["frames"])

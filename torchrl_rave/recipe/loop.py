@@ -240,6 +240,11 @@ def _train(cfg: DictConfig, run_dir: str) -> dict[str, float]:
         print(f"stopped at frame {counters['frames']}; resume with resume={run_dir}")
         return last_eval
     if not last_eval:  # a run resumed from its final checkpoint
+        print(
+            f"nothing to train: the run is at {counters['frames']} frames and "
+            f"collector.total_frames={cfg.collector.total_frames} (raise it to train on); "
+            "evaluating its last checkpoint"
+        )
         eval_env.set_seed(cfg.env.seed + 1_000_003 + counters["frames"])
         last_eval = evaluate_agent(cfg, eval_env, agent)
     elapsed = time.perf_counter() - start
