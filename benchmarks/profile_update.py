@@ -164,6 +164,10 @@ def main(argv: list[str] | None = None) -> str:
         "in fresh pages at every update)",
     )
     args = parser.parse_args(argv)
+    for flag, value, least in (("--threads", args.threads, 1), ("--steps", args.steps, 1),
+                               ("--rows", args.rows, 1), ("--seeds", args.seeds, 0)):  # fmt: skip
+        if value < least:
+            parser.error(f"{flag} must be at least {least}, got {value}")
     malloc_kept = False if args.default_malloc else keep_freed_memory()
 
     torch.set_num_threads(args.threads)

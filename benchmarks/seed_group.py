@@ -49,6 +49,7 @@ from update_throughput import (
 )
 
 from torchrl_rave.recipe.agent import make_seed_group
+from torchrl_rave.recipe.group import GROUP_ALGORITHMS
 from torchrl_rave.recipe.memory import keep_freed_memory
 from torchrl_rave.recipe.update import make_agent_step
 from torchrl_rave.trainers import SeedGroup, SeedStreams
@@ -226,6 +227,14 @@ def main(argv: list[str] | None = None) -> dict:
     args = parser.parse_args(argv)
     if args.repeats < 1:
         parser.error(f"--repeats must be at least 1, got {args.repeats}")
+    for flag, values in (("--seeds", args.seeds), ("--threads", args.threads)):
+        if min(values) < 1:
+            parser.error(f"{flag} must all be at least 1, got {values}")
+    unknown = [a for a in args.algorithms if a not in GROUP_ALGORITHMS]
+    if unknown:
+        parser.error(f"--algorithms {unknown}: a seed group trains {', '.join(GROUP_ALGORITHMS)}")
+    if torch.device(args.device).type == "cuda" and not torch.cuda.is_available():
+        parser.error("--device cuda but torch.cuda.is_available() is False")
     if args.repeats > 1 and args.streams_cost:
         parser.error("--repeats applies to the speed-up rows, not to --streams-cost")
     if args.out is None:

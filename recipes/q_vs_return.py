@@ -119,7 +119,10 @@ def main(argv: list[str] | None = None) -> str:
     parser.add_argument("runs", nargs="+", help="LABEL=RUN_DIR of a rave_mujoco.py run")
     parser.add_argument("--episodes", type=int, default=10)
     parser.add_argument(
-        "--drop-tail", type=int, default=300, help="states cut from the end of truncated episodes, >= 0"
+        "--drop-tail",
+        type=int,
+        default=300,
+        help="states cut from the end of truncated episodes, >= 0",
     )
     parser.add_argument("--seed", type=int, default=12345, help="evaluation env seed")
     parser.add_argument("--out", type=Path, default=Path("q_vs_return.png"))

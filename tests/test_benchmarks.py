@@ -332,7 +332,7 @@ def test_optimizer_step_times_the_recipes_own_parameter_sets(tmp_path):
     assert all(r[f"{v}_us"] > 0 for r in rows.values() for v in ("fused", "foreach", "loop"))
 
 
-def test_seed_group_benchmark_calls_do_not_grow_with_the_group(tmp_path):
+def test_seed_group_benchmark_calls_do_not_grow_with_the_group(tmp_path, capsys):
     """benchmarks/seed_group.py: a group of 2 makes no more ATen calls per update than a
     group of 1, while two separate updates make twice one's; its JSON says so, and with
     ``--repeats`` a row is the repeat with the median ratio."""
@@ -353,8 +353,14 @@ def test_seed_group_benchmark_calls_do_not_grow_with_the_group(tmp_path):
         )
         assert len(r["speedup_repeats"]) == 3
         assert r["speedup"] == pytest.approx(sorted(r["speedup_repeats"])[1])
-    with pytest.raises(SystemExit):
-        seed_group.main(["--repeats", "0", "--out", str(out)])
+    # bad arguments are named before anything is built
+    for bad, problem in ((["--repeats", "0"], "--repeats must be at least 1"),
+                         (["--seeds", "0", "4"], "--seeds must all be at least 1"),
+                         (["--threads", "0"], "--threads must all be at least 1"),
+                         (["--algorithms", "ppo"], "--algorithms ['ppo']: a seed group trains")):  # fmt: skip
+        with pytest.raises(SystemExit):
+            seed_group.main([*bad, "--out", str(out)])
+        assert problem in capsys.readouterr().err
 
 
 def test_seed_group_streams_cost_compares_the_two_ways_of_drawing(tmp_path):
