@@ -24,6 +24,7 @@ import time
 from pathlib import Path
 
 import torch
+from cli_types import count
 from provenance import provenance
 from update_throughput import recipe_config
 
@@ -65,16 +66,16 @@ def measure(env_name: str, backend: str, workers: int, frames_per_batch: int, ba
 def main(argv=None) -> dict:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--env", default="Hopper-v5")
-    parser.add_argument("--workers", nargs="+", type=int, default=[1, 2, 4])
+    parser.add_argument("--workers", nargs="+", type=count(), default=[1, 2, 4])
     parser.add_argument(
         "--backends",
         nargs="+",
         choices=["process", "ray"],
         default=["process", "ray"] if importlib.util.find_spec("ray") else ["process"],
     )
-    parser.add_argument("--frames-per-batch", type=int, default=1000)
-    parser.add_argument("--batches", type=int, default=5)
-    parser.add_argument("--repeats", type=int, default=2)
+    parser.add_argument("--frames-per-batch", type=count(), default=1000)
+    parser.add_argument("--batches", type=count(), default=5)
+    parser.add_argument("--repeats", type=count(), default=2)
     parser.add_argument("--json", default=str(ROOT / "benchmarks" / "collection_throughput.json"))
     args = parser.parse_args(argv)
     torch.set_num_threads(1)  # the learner's share; workers are single-threaded processes

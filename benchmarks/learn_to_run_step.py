@@ -28,6 +28,7 @@ from pathlib import Path
 
 import gymnasium as gym
 import numpy as np
+from cli_types import count
 from provenance import provenance
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -59,7 +60,7 @@ def main(argv=None) -> list[dict]:
     parser.add_argument(
         "--policies", nargs="+", choices=["random", "zero"], default=["random", "zero"]
     )
-    parser.add_argument("--episodes", type=int, default=3)
+    parser.add_argument("--episodes", type=count(), default=3)
     parser.add_argument("--env", nargs="+", choices=list(KWARGS), default=["LearnToRun-v0"])
     parser.add_argument("--json", help="default: benchmarks/learn_to_run_step.json, or "
                         "learn_to_move_step.json for the 2019 task")  # fmt: skip

@@ -28,6 +28,7 @@ import sys
 import time
 from pathlib import Path
 
+from cli_types import count
 from provenance import provenance
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -78,7 +79,7 @@ def worker(kind: str, seconds: float) -> dict:
 
 def main(argv=None) -> dict:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--rounds", type=int, default=4, help="worker pairs (default 4)")
+    parser.add_argument("--rounds", type=count(), default=4, help="worker pairs (default 4)")
     parser.add_argument(
         "--seconds", type=float, default=4.0, help="timed seconds per case per worker (default 4)"
     )

@@ -20,6 +20,7 @@ import time
 from pathlib import Path
 
 import torch
+from cli_types import count
 from provenance import provenance
 from update_throughput import _Spec, recipe_config
 
@@ -57,9 +58,9 @@ def timed_optimizer(shapes: list[torch.Size], kwargs: dict):
 
 def main(argv: list[str] | None = None) -> dict:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("--threads", type=int, default=None, help="torch threads")
-    parser.add_argument("--steps", type=int, default=200, help="steps per round")
-    parser.add_argument("--rounds", type=int, default=7)
+    parser.add_argument("--threads", type=count(), default=None, help="torch threads")
+    parser.add_argument("--steps", type=count(), default=200, help="steps per round")
+    parser.add_argument("--rounds", type=count(), default=7)
     parser.add_argument(
         "--json", type=Path, default=Path(__file__).with_name("optimizer_step.json")
     )

@@ -40,6 +40,7 @@ import time
 from collections import Counter, defaultdict
 
 import torch
+from cli_types import count
 from torch.nn import functional as F
 from torch.profiler import ProfilerActivity, profile
 from torch.utils._python_dispatch import TorchDispatchMode
@@ -134,10 +135,10 @@ def matmul_floor(run, steps: int, seconds: float = 1.0) -> dict:
 def main(argv: list[str] | None = None) -> str:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--algorithm", default="rave")
-    parser.add_argument("--threads", type=int, default=1)
-    parser.add_argument("--steps", type=int, default=20, help="updates profiled")
+    parser.add_argument("--threads", type=count(), default=1)
+    parser.add_argument("--steps", type=count(), default=20, help="updates profiled")
     parser.add_argument("--target-only", action="store_true", help="the value target alone")
-    parser.add_argument("--rows", type=int, default=15, help="rows per table")
+    parser.add_argument("--rows", type=count(), default=15, help="rows per table")
     parser.add_argument(
         "--matmuls",
         action="store_true",
@@ -146,7 +147,7 @@ def main(argv: list[str] | None = None) -> str:
     parser.add_argument("--ops", action="store_true", help="count ATen calls per step instead")
     parser.add_argument(
         "--seeds",
-        type=int,
+        type=count(0),
         default=0,
         help="profile a SeedGroup of this many learners instead (ddpg, mve, steve, rave; "
         "one step updates every seed, as in seed_group.py)",
@@ -164,10 +165,6 @@ def main(argv: list[str] | None = None) -> str:
         "in fresh pages at every update)",
     )
     args = parser.parse_args(argv)
-    for flag, value, least in (("--threads", args.threads, 1), ("--steps", args.steps, 1),
-                               ("--rows", args.rows, 1), ("--seeds", args.seeds, 0)):  # fmt: skip
-        if value < least:
-            parser.error(f"{flag} must be at least {least}, got {value}")
     malloc_kept = False if args.default_malloc else keep_freed_memory()
 
     torch.set_num_threads(args.threads)

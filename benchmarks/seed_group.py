@@ -35,6 +35,7 @@ import json
 from pathlib import Path
 
 import torch
+from cli_types import count
 from profile_update import _CountOps
 from provenance import provenance
 from tensordict import TensorDict
@@ -206,8 +207,8 @@ def streams_cost(algorithms, seeds, threads, device, seconds: float) -> dict:
 def main(argv: list[str] | None = None) -> dict:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--algorithms", nargs="+", default=["rave", "ddpg"])
-    parser.add_argument("--seeds", nargs="+", type=int, default=[1, 2, 4, 8])
-    parser.add_argument("--threads", nargs="+", type=int, default=[1, 2])
+    parser.add_argument("--seeds", nargs="+", type=count(), default=[1, 2, 4, 8])
+    parser.add_argument("--threads", nargs="+", type=count(), default=[1, 2])
     parser.add_argument("--device", default="cpu")
     parser.add_argument("--seconds", type=float, default=4.0, help="timed per case")
     parser.add_argument(
@@ -218,18 +219,13 @@ def main(argv: list[str] | None = None) -> dict:
     )
     parser.add_argument(
         "--repeats",
-        type=int,
+        type=count(),
         default=1,
         help="measure each S this many times; a row reports the repeat with the median "
         "ratio and lists every repeat's (separate learners' speed moves between runs)",
     )
     parser.add_argument("--out", type=Path, default=None)
     args = parser.parse_args(argv)
-    if args.repeats < 1:
-        parser.error(f"--repeats must be at least 1, got {args.repeats}")
-    for flag, values in (("--seeds", args.seeds), ("--threads", args.threads)):
-        if min(values) < 1:
-            parser.error(f"{flag} must all be at least 1, got {values}")
     unknown = [a for a in args.algorithms if a not in GROUP_ALGORITHMS]
     if unknown:
         parser.error(f"--algorithms {unknown}: a seed group trains {', '.join(GROUP_ALGORITHMS)}")

@@ -31,8 +31,10 @@ import tempfile
 import time
 from pathlib import Path
 
+from cli_types import count
 from provenance import provenance
 
+from torchrl_rave.recipe.group import GROUP_ALGORITHMS
 from torchrl_rave.recipe.runs import read_scalar
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -86,9 +88,9 @@ def layout(name: str, batches: list[list[tuple[list[str], int, list[int]]]], tmp
 
 def main(argv: list[str] | None = None) -> dict:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("--algorithm", default="rave")
+    parser.add_argument("--algorithm", default="rave", choices=GROUP_ALGORITHMS)
     parser.add_argument("--env", default="Hopper-v5")
-    parser.add_argument("--frames", type=int, default=4000)
+    parser.add_argument("--frames", type=count(), default=4000)
     parser.add_argument("--out", type=Path, default=ROOT / "benchmarks" / "seed_group_runs.json")
     args = parser.parse_args(argv)
     base = [f"algorithm={args.algorithm}", f"env.name={args.env}",

@@ -354,9 +354,9 @@ def test_seed_group_benchmark_calls_do_not_grow_with_the_group(tmp_path, capsys)
         assert len(r["speedup_repeats"]) == 3
         assert r["speedup"] == pytest.approx(sorted(r["speedup_repeats"])[1])
     # bad arguments are named before anything is built
-    for bad, problem in ((["--repeats", "0"], "--repeats must be at least 1"),
-                         (["--seeds", "0", "4"], "--seeds must all be at least 1"),
-                         (["--threads", "0"], "--threads must all be at least 1"),
+    for bad, problem in ((["--repeats", "0"], "argument --repeats: must be an integer >= 1"),
+                         (["--seeds", "0", "4"], "argument --seeds: must be an integer >= 1"),
+                         (["--threads", "0"], "argument --threads: must be an integer >= 1"),
                          (["--algorithms", "ppo"], "--algorithms ['ppo']: a seed group trains")):  # fmt: skip
         with pytest.raises(SystemExit):
             seed_group.main([*bad, "--out", str(out)])
