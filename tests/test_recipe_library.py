@@ -74,6 +74,30 @@ class TestLoadPolicy:
                 torch.testing.assert_close(agent.loss.actor_network_params.get(name), value)
         fresh = load_policy(rave_run)(TensorDict(observation=obs, batch_size=[5]))["action"]
         torch.testing.assert_close(fresh, action)
+        assert policy.in_keys == ["observation"] and "action" in policy.out_keys
+
+    @pytest.mark.parametrize(
+        "observation, problem",
+        [
+            (
+                torch.zeros(5, 11),
+                r"entry 'observation' has shape \(5, 11\), expected last dimension 4",
+            ),
+            (torch.zeros(5, 4, dtype=torch.float64), "is torch.float64 but the model's parameters"),
+            (torch.zeros(5, 4, dtype=torch.long), "is torch.int64, expected a floating-point"),
+            (torch.full((5, 4), float("nan")), "entry 'observation' holds NaN"),
+        ],
+    )
+    def test_the_loaded_policy_names_bad_observations(self, rave_run, observation, problem):
+        # e.g. a Hopper observation (11 wide) fed to an InvertedPendulum policy (4 wide):
+        # named, instead of torch's "mat1 and mat2 shapes cannot be multiplied"
+        for explore in (False, True):
+            with pytest.raises(ValueError, match=problem):
+                load_policy(rave_run, explore=explore)(
+                    TensorDict(observation=observation, batch_size=[5])
+                )
+        with pytest.raises(ValueError, match="no entry 'observation'"):
+            load_policy(rave_run)(TensorDict(obs=torch.zeros(5, 4), batch_size=[5]))
 
 
 class TestRunReader:

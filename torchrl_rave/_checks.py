@@ -32,7 +32,7 @@ def get_checked(
         raise ValueError(
             f"entry {key!r} is {value.dtype}, expected a floating-point tensor"
             + (f" ({dtype}, as the model's parameters)" if dtype is not None else "")
-            + ": cast it (e.g. with torchrl's DoubleToFloat or a dtype cast) before the loss"
+            + ": cast it (e.g. with torchrl's DoubleToFloat or a dtype cast) first"
         )
     if size is not None and value.shape[-1] != size:
         raise ValueError(

@@ -37,6 +37,7 @@ from torchrl.objectives import (
     ValueEstimators,
 )
 
+from torchrl_rave._checks import get_checked
 from torchrl_rave.envs.action_noise import ActuatorNoise
 from torchrl_rave.envs.families import import_env_family
 from torchrl_rave.modules import EpsilonGaussianModule, WorldModelEnsemble
@@ -59,6 +60,7 @@ from torchrl_rave.transforms import RewardTermsReader
 
 __all__ = [
     "Agent",
+    "CheckedPolicy",
     "bootstrap_value",
     "critic_loss_key",
     "critic_mean",
@@ -198,15 +200,41 @@ def load_policy(
     trust: bool = False,
 ) -> TensorDictModuleBase:
     """A ready TorchRL policy from a run directory: the trained deterministic actor (or,
-    with ``explore=True``, the exploration policy the run collected with). ``trust`` as
-    for :func:`load_agent`.
+    with ``explore=True``, the exploration policy the run collected with), in a
+    :class:`CheckedPolicy` that names observations of the wrong width or dtype, and NaN.
+    ``trust`` as for :func:`load_agent`.
 
     Examples:
         >>> policy = load_policy("outputs/2026-11-23/10-00-00")  # doctest: +SKIP
         >>> env.rollout(1000, policy)  # doctest: +SKIP
     """
     _, agent = load_agent(run_dir, device, trust=trust)
-    return agent.policy if explore else agent.actor
+    return CheckedPolicy(agent.policy if explore else agent.actor)
+
+
+class CheckedPolicy(TensorDictModuleBase):
+    """A policy that names bad input before acting: a missing observation entry, one of
+    another width than the policy was trained on, an integer or other-precision tensor,
+    NaN or inf (each a ``ValueError`` naming the entry, as the losses raise). Otherwise it
+    is ``policy`` itself: the same keys, parameters and outputs.
+    :func:`load_policy` returns one, so that a loaded policy fed the wrong env's
+    observations says so instead of failing inside a matrix product.
+
+    Args:
+        policy (TensorDictModuleBase): a policy reading ``"observation"``, whose first
+            ``nn.Linear`` reads the observation (the recipe's actors).
+    """
+
+    def __init__(self, policy: TensorDictModuleBase) -> None:
+        super().__init__()
+        self.policy = policy
+        self.in_keys, self.out_keys = list(policy.in_keys), list(policy.out_keys)
+        first = next(m for m in policy.modules() if isinstance(m, nn.Linear))
+        self.width, self.dtype = first.in_features, first.weight.dtype
+
+    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
+        get_checked(tensordict, "observation", self.width, dtype=self.dtype, floating=True)
+        return self.policy(tensordict)
 
 
 def make_env(cfg: DictConfig, device: torch.device) -> TransformedEnv:
