@@ -73,6 +73,14 @@ class TestPlotCurves:
             parse_groups(["nolabel"])
         with pytest.raises(FileNotFoundError, match="no run directory matches"):
             parse_groups([f"x={tmp_path}/missing*"])
+        # a damaged line is named with its file and line number
+        fake_run(tmp_path / "bad", "x", [(100, 1.0)])
+        with open(tmp_path / "bad" / "x" / "scalars" / "eval" / "return.csv", "a") as f:
+            f.write("60\n")
+        with pytest.raises(
+            ValueError, match=r"return.csv:2: expected a line 'step,value', got '60'"
+        ):
+            read_scalar(tmp_path / "bad", "eval/return")
         (tmp_path / "empty").mkdir()
         with pytest.raises(FileNotFoundError, match=r"no 'eval/return' logged \(no CSV or Tens"):
             read_scalar(tmp_path / "empty", "eval/return")

@@ -52,8 +52,7 @@ def read_scalar(run_dir: str | Path, metric: str) -> tuple[np.ndarray, np.ndarra
             f"{run_dir}: expected one <exp>/scalars/{metric}.csv, found {len(files)}"
         )
     if files:
-        with open(files[0]) as f:
-            rows = [(int(step), float(value)) for step, value in csv.reader(f)]
+        rows = _csv_rows(files[0])
     elif any(run_dir.glob("*/events.out.tfevents.*")):
         rows = _tensorboard_rows(run_dir, metric)
     elif (run_dir / "mlflow.db").is_file():
@@ -63,6 +62,22 @@ def read_scalar(run_dir: str | Path, metric: str) -> tuple[np.ndarray, np.ndarra
     latest = dict(rows)
     steps = np.array(sorted(latest), dtype=np.int64)
     return steps, np.array([latest[s] for s in steps], dtype=np.float64)
+
+
+def _csv_rows(path: Path) -> list[tuple[int, float]]:
+    """``(step, value)`` rows of one metric's CSV; a line that is not ``step,value`` (a
+    file damaged or edited by hand) is named with its file and line number."""
+    rows = []
+    with open(path, newline="") as f:
+        for number, row in enumerate(csv.reader(f), 1):
+            try:
+                step, value = row
+                rows.append((int(step), float(value)))
+            except ValueError:
+                raise ValueError(
+                    f"{path}:{number}: expected a line 'step,value', got {','.join(row)!r}"
+                ) from None
+    return rows
 
 
 def _tensorboard_rows(run_dir: Path, metric: str) -> list[tuple[int, float]]:
