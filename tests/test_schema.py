@@ -129,3 +129,29 @@ class TestAllProblemsAtOnce:
             "  config key optim.gamma=1.5 is invalid: expected in [0, 1]",
         ]
         assert not run.exists()  # nothing was built or written
+
+    def test_a_resume_path_with_no_run_is_named(self, tmp_path):
+        """A missing path, a directory with no checkpoint and a run's checkpoints/ folder
+        are each named; on the command line in one line, without a traceback."""
+        from torchrl_rave.recipe.checkpoint import config_for_resume
+
+        run, missing, empty = tmp_path / "run", tmp_path / "missing", tmp_path / "empty"
+        (run / "checkpoints" / "checkpoint-000000000200").mkdir(parents=True)
+        empty.mkdir()
+        cases = {
+            missing: f"{missing} does not exist: expected a run directory",
+            empty: f"no checkpoint under {empty / 'checkpoints'}",
+            run / "checkpoints": f"{run / 'checkpoints'} is a run's checkpoints folder: pass "
+            f"the run directory that holds it, {run}",
+        }
+        for path, problem in cases.items():
+            with pytest.raises(FileNotFoundError) as caught:
+                config_for_resume(path, [f"resume={path}"])
+            assert str(caught.value) == problem
+        done = subprocess.run(
+            [sys.executable, str(RECIPE), f"resume={missing}", f"hydra.run.dir={tmp_path / 'h'}"],
+            capture_output=True, text=True, timeout=300,
+        )  # fmt: skip
+        assert done.returncode == 1
+        assert "Traceback" not in done.stderr + done.stdout
+        assert done.stderr.strip().splitlines()[-1] == f"resume={missing}: {cases[missing]}"

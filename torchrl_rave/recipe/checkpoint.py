@@ -513,7 +513,16 @@ class _StateReader:
 
 def missing_checkpoint(run_dir: str | Path) -> FileNotFoundError:
     """The error for a directory with no checkpoint to read. A seed group's own directory
-    (``seeds=``) has none: its runs are its ``seed<s>/`` directories, which it names."""
+    (``seeds=``) has none: its runs are its ``seed<s>/`` directories, which it names. A
+    path that does not exist, and a run's own ``checkpoints/`` folder given in place of the
+    run, are named as such."""
+    if not Path(run_dir).exists():
+        return FileNotFoundError(f"{run_dir} does not exist: expected a run directory")
+    if Path(run_dir).name == "checkpoints" and any(Path(run_dir).glob(f"{PREFIX}*")):
+        return FileNotFoundError(
+            f"{run_dir} is a run's checkpoints folder: pass the run directory that holds "
+            f"it, {Path(run_dir).parent}"
+        )
     group_file = Path(run_dir) / "group.json"
     if group_file.is_file():
         seeds = json.loads(group_file.read_text())["config"]["seeds"]
@@ -533,7 +542,10 @@ def saved_config(run_dir: str | Path, defaults: DictConfig | None = None) -> Dic
 
         saved = OmegaConf.create(group_config(run_dir))
         return saved if defaults is None else OmegaConf.merge(defaults, saved)
-    saved = OmegaConf.create(RunCheckpoint(run_dir).config())
+    checkpoint = RunCheckpoint(run_dir)
+    if not checkpoint.checkpoints():  # none at all (a damaged one is named by config())
+        raise missing_checkpoint(run_dir)
+    saved = OmegaConf.create(checkpoint.config())
     return saved if defaults is None else OmegaConf.merge(defaults, saved)
 
 
