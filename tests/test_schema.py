@@ -106,6 +106,18 @@ class TestAllProblemsAtOnce:
         assert len(caught.value.problems) == 3
         check_command_line(["env.name=Hopper-v5", "ray.worker_resources.actors=1"])  # fine
 
+    def test_command_line_with_a_sweep(self):
+        # a -m sweep's values are hydra's to expand; its key and every other override are
+        # still checked (before: a ValidationError traceback about "Set[str]", and with -m
+        # on the command line nothing was checked at all)
+        from torchrl_rave.recipe.cli import exit_on_bad_command_line
+
+        check_command_line(["algorithm=ddpg,td3", "env.seed=range(0,3)"])  # fine
+        with pytest.raises(ConfigError, match="estimator.hoirzon is not a key"):
+            check_command_line(["estimator.hoirzon=1,2"])
+        with pytest.raises(SystemExit, match=r"optim.gamma=1.5 is invalid"):
+            exit_on_bad_command_line(["-m", "algorithm=ddpg,td3", "optim.gamma=1.5"])
+
     def test_command_line_seed_group_with_env_seed_is_named(self):
         # the group seeds each run from seeds=; a given env.seed would be silently ignored
         with pytest.raises(ConfigError, match=r"seeds=\[0, 1\] and env.seed=3 are both given"):

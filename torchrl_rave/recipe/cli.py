@@ -33,8 +33,9 @@ ConfigStore.instance().store(
 def exit_on_bad_command_line(argv: list[str]) -> None:
     """Exits with every problem of the command line's overrides in one message (hydra
     itself would stop at the first unknown key, with a traceback hint)."""
+    overrides = [a for a in argv if not a.startswith("-")]  # hydra's flags (-m, --cfg, ...)
     try:
-        check_command_line(argv)
+        check_command_line(overrides)
     except ConfigError as err:
         raise SystemExit(f"{err}") from None
 

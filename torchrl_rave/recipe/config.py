@@ -310,6 +310,10 @@ def check_command_line(overrides: list[str]) -> None:
             if preset not in PRESETS:
                 problems.append(_invalid("preset", preset, f"one of {list(PRESETS)}"))
             continue
+        if o.is_sweep_override():  # a -m sweep (a,b / range(...)): its key, not each value
+            if key not in _SCHEMA and not any(key.startswith(f"{d}.") for d in dict_keys):
+                problems.append(f"config key {key} is not a key of the recipe")
+            continue
         resume = resume or (key == "resume" and o.value() is not None)
         if key in _SCHEMA:
             values[key] = o.value()
