@@ -87,18 +87,21 @@ def machine() -> dict:
 
 def export(run: Cell, dest: Path, started: float, commit: bool, group: Cell | None = None) -> None:
     """Copies a finished cell's metric CSVs and writes its cell.json (the commit of the
-    code that ran it, read from this script's checkout); commits them. A seed of a
-    ``group`` says so in its cell.json (``group``: the seeds that ran together)."""
+    code that ran it: this script's checkout at the cell's last start, not at export,
+    since a runner that commits its results into its own checkout moves ``HEAD`` while
+    its cells run); commits them. A seed of a ``group`` says so in its cell.json
+    (``group``: the seeds that ran together)."""
     for csv in run.run_dir.glob("*/scalars/**/*.csv"):
         target = dest / csv.relative_to(run.run_dir)
         target.parent.mkdir(parents=True, exist_ok=True)
         shutil.copyfile(csv, target)
+    starts = (group or run).starts()
     info = {
-        "commit": git(ROOT, "rev-parse", "HEAD"),
+        "commit": (starts[-1].get("commit") if starts else None) or git(ROOT, "rev-parse", "HEAD"),
         "frames": run.frames,
         "overrides": list(run.overrides),
         "config": RunCheckpoint(run.run_dir).config(),
-        "starts": (group or run).starts(),
+        "starts": starts,
         "train_s": train_seconds(run.run_dir),
         "runner_s": round(time.time() - started),
         "finished": time.strftime("%Y-%m-%d %H:%M:%S %Z"),

@@ -91,9 +91,15 @@ def test_report_from_results_alone(tmp_path, capsys):
         assert (figures / f"tiny_Hopper-v5_{name}.png").stat().st_size > 10_000
 
 
-def test_run_exports_a_finished_cell_and_skips_it_next_time(tmp_path, capsys):
+def test_run_exports_a_finished_cell_and_skips_it_next_time(tmp_path, capsys, monkeypatch):
     """One real cell (DDPG, 400 frames): its CSVs and cell.json land in results/, nothing
-    of its checkpoints does, and a second run has nothing to do."""
+    of its checkpoints does, and a second run has nothing to do. Its commit is the one
+    its run started at, though HEAD moves before the export (a runner committing its
+    results into its own checkout)."""
+    heads = iter(["a" * 40] + ["b" * 40] * 10)
+    real_git = study.git
+    monkeypatch.setattr(study, "git", lambda repo, *a: next(heads) if a == ("rev-parse", "HEAD")
+                        else real_git(repo, *a))  # fmt: skip
     config = write_study(tmp_path, algorithms=["ddpg"], seeds=[0], frames=400,
                          overrides=[o for o in TINY if "total_frames" not in o])  # fmt: skip
     args = ["run", "--config", str(config), "--results", str(tmp_path / "results"),
@@ -101,7 +107,7 @@ def test_run_exports_a_finished_cell_and_skips_it_next_time(tmp_path, capsys):
     study.main(args)
     cell = tmp_path / "results" / "tiny" / "Hopper-v5" / "ddpg" / "seed0"
     info = json.loads((cell / "cell.json").read_text())
-    assert info["frames"] == 400 and len(info["commit"]) == 40
+    assert info["frames"] == 400 and info["commit"] == "a" * 40
     assert [(s["commit"], s["from_frame"]) for s in info["starts"]] == [(info["commit"], 0)]
     # the cell's own seconds: its batches' collection, update and evaluation times
     timed = sum(
