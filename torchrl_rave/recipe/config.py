@@ -310,15 +310,11 @@ def check_command_line(overrides: list[str]) -> None:
             if preset not in PRESETS:
                 problems.append(_invalid("preset", preset, f"one of {list(PRESETS)}"))
             continue
-        if o.is_sweep_override():  # a -m sweep (a,b / range(...)): its key, not each value
-            if key not in _SCHEMA and not any(key.startswith(f"{d}.") for d in dict_keys):
-                problems.append(f"config key {key} is not a key of the recipe")
-            continue
-        resume = resume or (key == "resume" and o.value() is not None)
-        if key in _SCHEMA:
-            values[key] = o.value()
-        elif not any(key.startswith(f"{d}.") for d in dict_keys):
+        if key not in _SCHEMA and not any(key.startswith(f"{d}.") for d in dict_keys):
             problems.append(f"config key {key} is not a key of the recipe")
+        elif key in _SCHEMA and not o.is_sweep_override():  # a -m sweep's values: hydra's
+            resume = resume or (key == "resume" and o.value() is not None)
+            values[key] = o.value()
     if values.get("seeds") is not None and "env.seed" in values:
         # a group sets each run's env.seed from seeds: the given one would be ignored
         problems.append(

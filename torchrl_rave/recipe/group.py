@@ -58,7 +58,7 @@ from torchrl_rave.recipe.config import (
     replay_buffer_size,
 )
 from torchrl_rave.recipe.evaluate import evaluate_agent, make_logger
-from torchrl_rave.recipe.loop import batch_metrics, record_update
+from torchrl_rave.recipe.loop import batch_metrics, nothing_to_train, record_update
 from torchrl_rave.trainers import SeedStreams
 
 __all__ = ["GROUP_ALGORITHMS", "GROUP_FILE", "check_group", "group_config", "train_group"]
@@ -235,10 +235,10 @@ def train_group(cfg: DictConfig, run_dir: str) -> dict[str, float]:
     with StopRequest() as stop, contextlib.ExitStack() as on_error:
         for s in seeds:  # on an error, no seed's workers outlive the run
             on_error.enter_context(shutdown_on_error(lambda s=s: s.collector))
-        # nothing to collect for a group resumed at or past its total (a collector of no
-        # frames would fail), as the single run's loop does not start then
-        todo = counters["frames"] < total
-        for i, s in enumerate(seeds if todo else []):
+        # no collectors for a group resumed at or past its total (a collector of no frames
+        # would fail), as the single run's loop does not start then
+        collecting = seeds if counters["frames"] < total else []
+        for i, s in enumerate(collecting):
             with rng.use(i):
                 s.collector = make_collector(
                     s.cfg, s.env, s.agent.policy, device, counters["frames"]
@@ -246,10 +246,10 @@ def train_group(cfg: DictConfig, run_dir: str) -> dict[str, float]:
         iterators = [
             guarded_batches(s.collector, s.cfg, save_checkpoint, lambda: counters["frames"],
                             str(s.dir))
-            for s in (seeds if todo else [])
+            for s in collecting
         ]  # fmt: skip
         t_collect = time.perf_counter()
-        for batches in _lockstep(iterators, rng) if todo else ():
+        for batches in _lockstep(iterators, rng):
             collect_s = time.perf_counter() - t_collect
             data = [b.reshape(-1) for b in batches]
             for s, d in zip(seeds, data, strict=True):
@@ -303,11 +303,7 @@ def train_group(cfg: DictConfig, run_dir: str) -> dict[str, float]:
     if stop.requested:
         print(f"stopped at frame {counters['frames']}; resume with resume={root}")
     elif not last[0]:  # a group resumed from its final checkpoint
-        print(
-            f"nothing to train: the group is at {counters['frames']} frames and "
-            f"collector.total_frames={cfg.collector.total_frames} (raise it to train on); "
-            "evaluating its last checkpoints"
-        )
+        print(nothing_to_train("group", counters["frames"], cfg.collector.total_frames))
         for i, s in enumerate(seeds):
             with rng.use(i):
                 s.eval_env.set_seed(s.seed + 1_000_003 + counters["frames"])
@@ -328,8 +324,8 @@ def train_group(cfg: DictConfig, run_dir: str) -> dict[str, float]:
 
 def _lockstep(iterators, rng: SeedStreams):
     """One batch of every seed's collector, each drawn under its seed's stream, until the
-    first runs out."""
-    while True:
+    first runs out (at once, for no collectors)."""
+    while iterators:
         batches = []
         for i, it in enumerate(iterators):
             with rng.use(i):

@@ -240,11 +240,7 @@ def _train(cfg: DictConfig, run_dir: str) -> dict[str, float]:
         print(f"stopped at frame {counters['frames']}; resume with resume={run_dir}")
         return last_eval
     if not last_eval:  # a run resumed from its final checkpoint
-        print(
-            f"nothing to train: the run is at {counters['frames']} frames and "
-            f"collector.total_frames={cfg.collector.total_frames} (raise it to train on); "
-            "evaluating its last checkpoint"
-        )
+        print(nothing_to_train("run", counters["frames"], cfg.collector.total_frames))
         eval_env.set_seed(cfg.env.seed + 1_000_003 + counters["frames"])
         last_eval = evaluate_agent(cfg, eval_env, agent)
     elapsed = time.perf_counter() - start
@@ -260,6 +256,15 @@ def _train(cfg: DictConfig, run_dir: str) -> dict[str, float]:
     if logger is not None and hasattr(logger, "shutdown"):
         logger.shutdown()
     return {**last_eval, "frames": counters["frames"], "updates": counters["updates"]}
+
+
+def nothing_to_train(what: str, frames: int, total: int) -> str:
+    """What a run (or a seed group) resumed at or past its ``collector.total_frames``
+    says before it evaluates its restored policy."""
+    return (
+        f"nothing to train: the {what} is at {frames} frames and collector.total_frames="
+        f"{total} (raise it to train on); evaluating its last checkpoint"
+    )
 
 
 def update_on_batch(
