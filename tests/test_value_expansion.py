@@ -7,12 +7,12 @@ import math
 import pytest
 import torch
 from tensordict import TensorDict
-from tensordict.nn import TensorDictModule
+from tensordict.nn import NormalParamExtractor, TensorDictModule
 from test_world_model import small_model
 from torch import nn
 from torchrl.data import Bounded
-from torchrl.modules import MLP, Actor, ValueOperator
-from torchrl.objectives import DDPGLoss, SoftUpdate, TD3Loss
+from torchrl.modules import MLP, Actor, ProbabilisticActor, TanhNormal, ValueOperator
+from torchrl.objectives import DDPGLoss, REDQLoss, SACLoss, SoftUpdate, TD3Loss
 
 from torchrl_rave import (
     EnsembleDDPGLoss,
@@ -610,6 +610,23 @@ class TestBadInput:
         # MVE's fixed horizon and one-member models have no degenerate mix
         MVEEstimator.for_loss(ddpg_loss(), world_model=world_model(4), gamma=0.9)
         cls.for_loss(ddpg_loss(), world_model=world_model(1), gamma=0.9).value_estimate(batch())
+
+    @pytest.mark.parametrize("cls", [RAVEValueEstimator, STEVEEstimator, MVEEstimator])
+    @pytest.mark.parametrize("loss_cls", [SACLoss, REDQLoss])
+    def test_entropy_regularised_losses_are_refused(self, cls, loss_cls):
+        # SAC-style losses put Q(s', a') - alpha log pi(a'|s') in their target; an estimator
+        # installed there would silently bootstrap without the entropy term.
+        body = TensorDictModule(
+            nn.Sequential(MLP(in_features=S, out_features=2 * A, num_cells=[16]), NormalParamExtractor()),
+            in_keys=["observation"], out_keys=["loc", "scale"],
+        )  # fmt: skip
+        actor = ProbabilisticActor(
+            body, in_keys=["loc", "scale"], distribution_class=TanhNormal,
+            spec=Bounded(-1, 1, (A,)),
+        )  # fmt: skip
+        loss = loss_cls(actor, critic_net(), num_qvalue_nets=4)
+        with pytest.raises(ValueError, match=f"{loss_cls.__name__} bootstraps from .*entropy"):
+            cls.for_loss(loss, world_model=world_model(4), gamma=0.9)
 
     def test_tensordict_alpha_needs_the_key(self):
         est = self.est(alpha_mode="tensordict")

@@ -49,7 +49,22 @@ class TargetNetworks:
     @classmethod
     def of_loss(cls, loss_module, actor_network=None, fast_calls: bool = True) -> TargetNetworks:
         """The target actor and critics of a TorchRL loss: ``qvalue_network`` (stacked,
-        ``TD3Loss``-style) or ``value_network`` (``DDPGLoss``, :class:`EnsembleDDPGLoss`)."""
+        ``TD3Loss``-style) or ``value_network`` (``DDPGLoss``, :class:`EnsembleDDPGLoss`).
+
+        A loss with an entropy temperature (``log_alpha``: ``SACLoss``, ``REDQLoss``,
+        ``CQLLoss``, ``CrossQLoss``) is refused: it bootstraps from
+        ``Q(s', a') - alpha log pi(a' | s')`` with ``a'`` sampled from its policy, and the
+        estimators' targets, ``Q(s', pi(s'))`` of a deterministic actor, would drop that term.
+        """
+        if hasattr(loss_module, "log_alpha"):
+            name = type(loss_module).__name__
+            raise ValueError(
+                f"{name} bootstraps from Q(s', a') - alpha log pi(a'|s') with a' sampled from "
+                "its stochastic policy (it has an entropy temperature, log_alpha). "
+                "Value-expansion estimators bootstrap from Q(s', pi(s')) of a deterministic "
+                f"actor, so installed in {name} they would drop its entropy term. Use them "
+                "with torchrl_rave.EnsembleDDPGLoss or TD3Loss(num_qvalue_nets=K)."
+            )
         actor = (
             actor_network
             if actor_network is not None
