@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import re
+
 import pytest
 import torch
 from tensordict import TensorDict
@@ -91,6 +93,13 @@ class TestAdaptiveAlpha:
     def test_bad_arguments(self, kw, match):
         with pytest.raises(ValueError, match=match):
             AdaptiveAlpha(world_model(1), **kw)
+
+    @pytest.mark.parametrize("key", ["action", ("next", "observation")])
+    def test_a_missing_entry_is_named(self, key):
+        # it failed with "unsupported operand type(s) for -: 'NoneType' and 'Tensor'"
+        data = batch(B=4).exclude(key)
+        with pytest.raises(ValueError, match=re.escape(f"no entry {key!r}")):
+            AdaptiveAlpha(world_model(1))(data)
 
     def test_not_an_env_transform(self):
         with pytest.raises(RuntimeError, match="replay-buffer"):

@@ -3,6 +3,8 @@ to the TensorDict + vmap path."""
 
 from __future__ import annotations
 
+import math
+
 import pytest
 import torch
 from tensordict import TensorDict
@@ -168,6 +170,17 @@ def test_foreach_soft_update_matches_torchrl(K):
     assert not (ours.target_value_network_params == before).all()
     for name in ("target_actor_network_params", "target_value_network_params"):
         torch.testing.assert_close(getattr(ours, name), getattr(theirs, name), rtol=0, atol=1e-7)
+
+
+@pytest.mark.parametrize(
+    "kw,match", [({"tau": 1.5}, "tau must be in"), ({"tau": math.nan}, "tau must be in"),
+                 ({"eps": -0.1}, "eps must be in")],
+)  # fmt: skip
+def test_foreach_soft_update_names_a_bad_tau(kw, match):
+    # TorchRL's own message speaks of "eps = -0.5" for tau = 1.5
+    with pytest.raises(ValueError, match=match):
+        ForeachSoftUpdate(make_loss(2), **kw)
+    ForeachSoftUpdate(make_loss(2), tau=torch.tensor(0.0))  # the bounds hold
 
 
 def test_summing_every_output_entry_gives_the_loss_gradients():

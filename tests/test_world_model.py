@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import math
+import re
+
 import pytest
 import torch
 from tensordict import TensorDict
@@ -431,6 +434,18 @@ class TestBadInput:
         with pytest.raises(ValueError, match="'observation' is torch.float64 but the model"):
             self.model.update_normalizers_from(wrong)
         assert torch.equal(self.model.obs_norm.count, before)  # nothing merged
+
+    @pytest.mark.parametrize("key", ["observation", ("next", "reward")])
+    def test_nan_in_the_normalisers_input_is_named(self, key):
+        # was "inputs up to nan in magnitude ... beyond torch.float32's range"
+        bad = self.data.clone()
+        bad[key][1] = math.nan
+        before = self.model.obs_norm.count.clone()
+        with pytest.raises(ValueError, match=re.escape(f"entry {key!r} holds NaN")):
+            self.model.update_normalizers_from(bad)
+        assert torch.equal(self.model.obs_norm.count, before)  # nothing merged
+        with pytest.raises(ValueError, match="inputs hold NaN or infinite"):
+            self.model.obs_norm.update(torch.full((2, self.model.observation_dim), math.inf))
 
     def test_empty_batch(self):
         # failed inside random_ when drawing the bootstrap indices

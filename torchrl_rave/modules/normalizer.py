@@ -62,9 +62,11 @@ class RunningNormalizer(nn.Module):
         fits = torch.isfinite(new_mean.to(self.mean.dtype)).all()
         fits &= torch.isfinite(new_var.to(self.var.dtype)).all()
         if not bool(fits):  # the statistics are left as they were
+            if not bool(torch.isfinite(x).all()):
+                raise ValueError("RunningNormalizer: the inputs hold NaN or infinite values")
             raise ValueError(
-                f"RunningNormalizer: inputs up to {x.abs().max().item():.3g} in magnitude (or "
-                f"NaN/inf) give statistics beyond {self.var.dtype}'s range; scale them down "
+                f"RunningNormalizer: inputs up to {x.abs().max().item():.3g} in magnitude "
+                f"give statistics beyond {self.var.dtype}'s range; scale them down "
                 "(e.g. a reward scale or an observation transform) before they reach the model"
             )
         self.mean.copy_(new_mean)

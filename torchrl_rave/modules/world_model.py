@@ -409,9 +409,10 @@ class WorldModelEnsemble(TensorDictModuleBase):
         reward_key: NestedKey = ("next", "reward"),
     ) -> None:
         """Same as :meth:`update_normalizers`, reading a TorchRL transition batch; a
-        missing entry, a wrong width or another dtype than the model's is refused by name."""
+        missing entry, a wrong width, another dtype than the model's, or NaN or infinite
+        values, is refused by name before any statistic changes."""
         S, A = self.observation_dim, self.action_dim
-        read = functools.partial(get_checked, tensordict, check_finite=False, dtype=self.dtype)
+        read = functools.partial(get_checked, tensordict, dtype=self.dtype)
         self.update_normalizers(
             read(self.observation_key, S),
             read(self.action_key, A),

@@ -5,6 +5,8 @@ from __future__ import annotations
 import torch
 from torchrl.objectives import SoftUpdate
 
+from torchrl_rave._checks import UNIT_INTERVAL
+
 __all__ = ["ForeachSoftUpdate"]
 
 
@@ -35,6 +37,13 @@ class ForeachSoftUpdate(SoftUpdate):
     """
 
     _pairs: tuple[list[torch.Tensor], list[torch.Tensor]] | None = None
+
+    def __init__(self, loss_module, *, eps: float | None = None, tau: float | None = None):
+        # TorchRL reports a bad tau as "eps = 1 - tau"; name the argument given
+        for name, value in (("tau", tau), ("eps", eps)):
+            if value is not None:
+                UNIT_INTERVAL.check(name, value.item() if torch.is_tensor(value) else value)
+        super().__init__(loss_module, eps=eps, tau=tau)
 
     def _list_pairs(self) -> tuple[list[torch.Tensor], list[torch.Tensor]]:
         for name in self._target_names:  # as TorchRL does: lets the loss refresh its targets

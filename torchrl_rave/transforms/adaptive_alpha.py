@@ -7,6 +7,7 @@ from tensordict import TensorDictBase
 from tensordict.utils import NestedKey
 from torchrl.envs.transforms import Transform
 
+from torchrl_rave._checks import get_checked
 from torchrl_rave.modules.world_model import WorldModelEnsemble
 from torchrl_rave.objectives.functional import adaptive_alpha, check_alpha_parameters
 
@@ -74,10 +75,13 @@ class AdaptiveAlpha(Transform):
     @torch.no_grad()
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
         obs_key, action_key, next_key = self.in_keys
-        obs = tensordict.get(obs_key)
-        err = self.world_model.mean_prediction_error(
-            obs, tensordict.get(action_key), tensordict.get(next_key)
+        S, A = self.world_model.observation_dim, self.world_model.action_dim
+        dtype = self.world_model.dtype
+        obs, action, next_obs = (
+            get_checked(tensordict, key, size, dtype=dtype, floating=True)
+            for key, size in ((obs_key, S), (action_key, A), (next_key, S))
         )
+        err = self.world_model.mean_prediction_error(obs, action, next_obs)
         alpha = adaptive_alpha(err, self.alpha, self.alpha_error_scale)
         tensordict.set(self.out_keys[0], alpha.unsqueeze(-1))
         return tensordict
