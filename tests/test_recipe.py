@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import csv
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -409,6 +410,30 @@ class TestCheckpoints:
             ValueError, match="algorithm is 'td3' but the run was started with 'ddpg'"
         ):
             rave_mujoco.train(make_cfg(*overrides, "algorithm=td3", f"resume={tmp_path}"), "x")
+
+    def test_a_new_run_into_a_run_directory_is_refused(self, tmp_path):
+        # it overwrote the old run's checkpoints and appended a second run to its CSVs
+        overrides = [*TINY, "algorithm=ddpg", "collector.total_frames=200"]
+        single, group = tmp_path / "single", tmp_path / "group"
+        rave_mujoco.train(make_cfg(*overrides), str(single))
+        rave_mujoco.train(make_cfg(*overrides, "seeds=[0,1]"), str(group))
+        written = {p: p.read_bytes() for p in tmp_path.rglob("*") if p.is_file()}
+        with pytest.raises(FileExistsError, match=re.escape(
+            f"{single} holds a run already (its newest checkpoint is at 200 frames): pass "
+            f"resume={single} to continue it"
+        )):  # fmt: skip
+            rave_mujoco.train(make_cfg(*overrides), str(single))
+        with pytest.raises(FileExistsError, match="holds a seed group already: pass resume="):
+            rave_mujoco.train(make_cfg(*overrides, "seeds=[0,1]"), str(group))
+        done = subprocess.run(
+            [sys.executable, str(RECIPES / "rave_mujoco.py"), *overrides, f"hydra.run.dir={single}"],
+            capture_output=True, text=True, timeout=300,
+        )  # fmt: skip
+        assert done.returncode == 1 and "Traceback" not in done.stderr
+        assert f"resume={single} to continue it" in done.stderr
+        for path, content in written.items():  # not a byte changed
+            if ".hydra" not in path.parts and path.name != "rave_mujoco.log":
+                assert path.read_bytes() == content, path
 
     def test_resume_refuses_overrides_it_would_ignore(self, tmp_path):
         """A resumed run's buffer was allocated at its size, and its config is the saved

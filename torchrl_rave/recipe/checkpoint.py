@@ -511,6 +511,26 @@ class _StateReader:
         self.state = state
 
 
+def check_new_run_dir(run_dir: str | Path) -> None:
+    """Refuses to start a run in a directory that already holds one (its checkpoints, or a
+    seed group's ``group.json``): the new run would overwrite the old one's checkpoints and
+    append to its metrics, and a resume between the two would mix them. A directory with
+    no checkpoint (a run stopped before its first) may be trained into afresh."""
+    root = Path(run_dir)
+    if (root / "group.json").is_file():
+        raise FileExistsError(
+            f"{root} holds a seed group already: pass resume={root} to continue it, or "
+            "train into a new directory"
+        )
+    saved = RunCheckpoint(root).checkpoints() if root.is_dir() else []
+    if saved:
+        frame = int(saved[-1].name.removeprefix(PREFIX))
+        raise FileExistsError(
+            f"{root} holds a run already (its newest checkpoint is at {frame} frames): pass "
+            f"resume={root} to continue it, or train into a new directory"
+        )
+
+
 def missing_checkpoint(run_dir: str | Path) -> FileNotFoundError:
     """The error for a directory with no checkpoint to read. A seed group's own directory
     (``seeds=``) has none: its runs are its ``seed<s>/`` directories, which it names. A

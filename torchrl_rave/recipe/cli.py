@@ -44,7 +44,7 @@ def run_job(cfg: DictConfig) -> float:
     """One hydra job: train (or, with ``resume=``, continue) into hydra's run directory;
     returns the final evaluation return (NaN when a stop came before the first evaluation:
     a clean stop, exit code 0). A config problem, or a ``resume=`` path with no run to
-    continue, exits with its message only."""
+    continue, or a run directory that holds a run already, exits with its message only."""
     run_dir = HydraConfig.get().runtime.output_dir
     try:
         if cfg.resume:
@@ -54,7 +54,7 @@ def run_job(cfg: DictConfig) -> float:
             except FileNotFoundError as err:  # no run there: the message names the path
                 raise SystemExit(f"resume={cfg.resume}: {err}") from None
         return train(cfg, run_dir).get("eval/return", float("nan"))
-    except ConfigError as err:  # the message says it all
+    except (ConfigError, FileExistsError) as err:  # the message says it all
         raise SystemExit(f"{err}") from None
 
 

@@ -31,6 +31,7 @@ from torchrl_rave.recipe.agent import (
 )
 from torchrl_rave.recipe.checkpoint import (
     RunCheckpoint,
+    check_new_run_dir,
     exclusive_run,
     saved_config,
 )
@@ -61,9 +62,11 @@ from torchrl_rave.recipe.update import make_agent_step, ppo_update
 def train(cfg: DictConfig, run_dir: str) -> dict[str, float]:
     """Runs (or, with ``cfg.resume`` set, continues) one training run; returns the final
     evaluation metrics. Everything is written under ``run_dir``, which no other process
-    may train into meanwhile (:func:`exclusive_run`)."""
+    may train into meanwhile (:func:`exclusive_run`). A new run into a directory that
+    holds one already is refused (``FileExistsError``, naming ``resume=``)."""
     check_config(cfg)
     if not cfg.resume:
+        check_new_run_dir(run_dir)
         Path(run_dir).mkdir(parents=True, exist_ok=True)
     with exclusive_run(cfg.resume or run_dir):
         if cfg.get("seeds") is not None:  # S runs in one process, updates batched
