@@ -6,6 +6,7 @@ from __future__ import annotations
 import csv
 import os
 import re
+import shutil
 import signal
 import subprocess
 import sys
@@ -423,8 +424,9 @@ class TestCheckpoints:
             f"resume={single} to continue it"
         )):  # fmt: skip
             rave_mujoco.train(make_cfg(*overrides), str(single))
-        with pytest.raises(FileExistsError, match="holds a seed group already: pass resume="):
-            rave_mujoco.train(make_cfg(*overrides, "seeds=[0,1]"), str(group))
+        for seeds in (["seeds=[0,1]"], []):  # a group, and one run into a group's directory
+            with pytest.raises(FileExistsError, match="holds a seed group already: pass resume="):
+                rave_mujoco.train(make_cfg(*overrides, *seeds), str(group))
         done = subprocess.run(
             [sys.executable, str(RECIPES / "rave_mujoco.py"), *overrides, f"hydra.run.dir={single}"],
             capture_output=True, text=True, timeout=300,
@@ -434,6 +436,12 @@ class TestCheckpoints:
         for path, content in written.items():  # not a byte changed
             if ".hydra" not in path.parts and path.name != "rave_mujoco.log":
                 assert path.read_bytes() == content, path
+        # a group stopped before every seed had a checkpoint has nothing to resume: it
+        # starts afresh (as study.py's runner starts it)
+        shutil.rmtree(group / "seed1" / "checkpoints")
+        again = rave_mujoco.train(make_cfg(*overrides, "seeds=[0,1]"), str(group))
+        assert "seed1/eval/return" in again
+        assert RunCheckpoint(group / "seed1").read("counters")["frames"] == 200
 
     def test_resume_refuses_overrides_it_would_ignore(self, tmp_path):
         """A resumed run's buffer was allocated at its size, and its config is the saved

@@ -511,24 +511,33 @@ class _StateReader:
         self.state = state
 
 
-def check_new_run_dir(run_dir: str | Path) -> None:
-    """Refuses to start a run in a directory that already holds one (its checkpoints, or a
-    seed group's ``group.json``): the new run would overwrite the old one's checkpoints and
-    append to its metrics, and a resume between the two would mix them. A directory with
-    no checkpoint (a run stopped before its first) may be trained into afresh."""
+def check_new_run_dir(run_dir: str | Path, group: bool = False) -> None:
+    """Refuses to start a run (``group``: a seed group) in a directory that already holds a
+    resumable one: the new run would overwrite the old one's checkpoints and append to its
+    metrics, and a resume between the two would mix them. A run stopped before its first
+    checkpoint, or a group before every seed had one, has nothing to resume and may be
+    started afresh."""
     root = Path(run_dir)
-    if (root / "group.json").is_file():
-        raise FileExistsError(
-            f"{root} holds a seed group already: pass resume={root} to continue it, or "
-            "train into a new directory"
-        )
-    saved = RunCheckpoint(root).checkpoints() if root.is_dir() else []
-    if saved:
-        frame = int(saved[-1].name.removeprefix(PREFIX))
+    group_file = root / "group.json"
+    if group_file.is_file():
+        seeds = json.loads(group_file.read_text())["config"]["seeds"]
+        newest = [_newest_frame(root / f"seed{s}") for s in seeds]
+        if not group or None not in newest:
+            raise FileExistsError(
+                f"{root} holds a seed group already: pass resume={root} to continue it, "
+                "or train into a new directory"
+            )
+    frame = _newest_frame(root)
+    if frame is not None:
         raise FileExistsError(
             f"{root} holds a run already (its newest checkpoint is at {frame} frames): pass "
             f"resume={root} to continue it, or train into a new directory"
         )
+
+
+def _newest_frame(run_dir: Path) -> int | None:
+    saved = RunCheckpoint(run_dir).checkpoints() if run_dir.is_dir() else []
+    return int(saved[-1].name.removeprefix(PREFIX)) if saved else None
 
 
 def missing_checkpoint(run_dir: str | Path) -> FileNotFoundError:

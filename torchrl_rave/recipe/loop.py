@@ -66,7 +66,7 @@ def train(cfg: DictConfig, run_dir: str) -> dict[str, float]:
     holds one already is refused (``FileExistsError``, naming ``resume=``)."""
     check_config(cfg)
     if not cfg.resume:
-        check_new_run_dir(run_dir)
+        check_new_run_dir(run_dir, group=cfg.get("seeds") is not None)
         Path(run_dir).mkdir(parents=True, exist_ok=True)
     with exclusive_run(cfg.resume or run_dir):
         if cfg.get("seeds") is not None:  # S runs in one process, updates batched
