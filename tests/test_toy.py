@@ -82,12 +82,17 @@ class TestToyEnv:
         assert rollout["next", "reward"].sum().item() == FINAL_REWARD - 6 * STEP_PENALTY
 
     def test_bad_arguments(self):
-        with pytest.raises(ValueError, match="k must be >= 0"):
+        with pytest.raises(ValueError, match="k must be a finite number >= 0"):
             ToyEnv(k=-1.0)
+        with pytest.raises(ValueError, match="bound must be a finite number > 0, got 0.0"):
+            ToyEnv(bound=0)
         env = ToyEnv(k=0.0)
         env.reset(seed=0)
         with pytest.raises(ValueError, match="action must be finite"):
             env.step(np.array([np.nan], dtype=np.float32))
+        # a second action value was silently dropped
+        with pytest.raises(ValueError, match=r"action must hold one value, got shape \(2,\)"):
+            env.step(np.array([1.0, -1.0], dtype=np.float32))
 
 
 class TestGroundTruth:
@@ -104,6 +109,27 @@ class TestGroundTruth:
             -STEP_PENALTY + g * (-STEP_PENALTY) + g**2 * (FINAL_REWARD - STEP_PENALTY)
         )
         assert ground_truth_q(0.0, 1.0, k=0.0) == (deterministic_q(0.0, 1.0), 0.0)
+
+    def test_undiscounted(self):
+        # gamma = 1 divided by zero in the closed form: six penalties and the goal
+        assert deterministic_q(0.0, 1.0, gamma=1.0) == 6 * -STEP_PENALTY + FINAL_REWARD
+        assert ground_truth_q(0.0, 1.0, k=0.0, gamma=1.0)[0] == 6 * -STEP_PENALTY + FINAL_REWARD
+
+    @pytest.mark.parametrize(
+        "kw,match",
+        [
+            ({"gamma": 1.5}, "gamma must be in \\[0, 1\\], got 1.5"),  # ran 100,000 sweeps
+            ({"k": float("nan")}, "k must be a finite number >= 0"),
+            ({"cells": 1}, "cells must be an integer >= 2"),
+            ({"s": float("nan")}, "s must be a finite number"),
+            ({"s": 6.0}, "already terminal"),
+            ({"a": float("inf")}, "a must be a finite number"),
+        ],
+    )
+    def test_bad_arguments(self, kw, match):
+        args = {"s": 0.0, "a": 1.0, "k": 1.0, **kw}
+        with pytest.raises(ValueError, match=match):
+            ground_truth_q(**args)
 
     def test_deterministic_against_monte_carlo(self):
         mc, se = monte_carlo_q(0.0, 1.0, k=0.0, episodes=10)

@@ -23,6 +23,8 @@ import numpy as np
 import torch
 from gymnasium import spaces
 
+from torchrl_rave._checks import FINITE, NON_NEGATIVE, POSITIVE, UNIT_INTERVAL, Rule
+
 BOUND = 5.0
 STEP_PENALTY = 1.0
 FINAL_REWARD = 460.0
@@ -56,12 +58,9 @@ class ToyEnv(gym.Env):
         final_reward: float = FINAL_REWARD,
         bound: float = BOUND,
     ) -> None:
-        if not k >= 0:
-            raise ValueError(f"k must be >= 0, got {k!r}")
-        self.k = float(k)
-        self.step_penalty = float(step_penalty)
-        self.final_reward = float(final_reward)
-        self.bound = float(bound)
+        self.k, self.step_penalty, self.final_reward, self.bound = _check_constants(
+            k, step_penalty, final_reward, bound
+        )
         self.action_space = spaces.Box(-1.0, 1.0, shape=(1,), dtype=np.float32)
         self.observation_space = spaces.Box(-np.inf, np.inf, shape=(1,), dtype=np.float32)
         self._s = 0.0
@@ -72,7 +71,10 @@ class ToyEnv(gym.Env):
         return np.array([self._s], dtype=np.float32), {}
 
     def step(self, action):
-        a = float(np.asarray(action, dtype=np.float64).reshape(-1)[0])
+        flat = np.asarray(action, dtype=np.float64).reshape(-1)
+        if flat.size != 1:
+            raise ValueError(f"action must hold one value, got shape {np.shape(action)}")
+        a = float(flat[0])
         if not math.isfinite(a):
             raise ValueError(f"action must be finite, got {a!r}")
         noise = self.k * self.np_random.standard_normal() if self.k > 0 else 0.0
@@ -80,6 +82,32 @@ class ToyEnv(gym.Env):
         terminated = abs(self._s) > self.bound
         reward = -self.step_penalty + (self.final_reward if terminated else 0.0)
         return np.array([self._s], dtype=np.float32), reward, terminated, False, {}
+
+
+def _check_constants(k, step_penalty, final_reward, bound) -> tuple[float, float, float, float]:
+    return (
+        NON_NEGATIVE.check("k", _number(k)),
+        FINITE.check("step_penalty", _number(step_penalty)),
+        FINITE.check("final_reward", _number(final_reward)),
+        POSITIVE.check("bound", _number(bound)),
+    )
+
+
+def _number(value):
+    """``value`` as a Python float where it is a real scalar (numpy and torch scalars
+    included); anything else as it is, for the check to name."""
+    try:
+        return float(value) if not isinstance(value, (bool, str)) else value
+    except (TypeError, ValueError):
+        return value
+
+
+def _check_state_action(s, a, bound: float) -> tuple[float, float]:
+    s = FINITE.check("s", _number(s))
+    a = FINITE.check("a", _number(a))
+    if abs(s) > bound:
+        raise ValueError(f"s={s} is already terminal (|s| > {bound})")
+    return s, a
 
 
 def deterministic_q(
@@ -96,8 +124,9 @@ def deterministic_q(
         >>> round(deterministic_q(0.0, 1.0), 3)  # six steps: five penalties, then the goal
         431.603
     """
-    if abs(s) > bound:
-        raise ValueError(f"s={s} is already terminal (|s| > {bound})")
+    _, step_penalty, final_reward, bound = _check_constants(0.0, step_penalty, final_reward, bound)
+    s, a = _check_state_action(s, a, bound)
+    gamma = UNIT_INTERVAL.check("gamma", _number(gamma))
 
     def steps_out(x: float) -> int:  # moves away from 0 until |x| > bound
         return math.floor(bound - abs(x)) + 1
@@ -106,7 +135,8 @@ def deterministic_q(
     if abs(x) > bound:
         return -step_penalty + final_reward
     n = steps_out(x)
-    tail = -step_penalty * (1 - gamma**n) / (1 - gamma) + gamma ** (n - 1) * final_reward
+    penalties = n if gamma == 1 else (1 - gamma**n) / (1 - gamma)  # sum of gamma^i, i < n
+    tail = -step_penalty * penalties + gamma ** (n - 1) * final_reward
     return -step_penalty + gamma * tail
 
 
@@ -137,6 +167,12 @@ def ground_truth_q(
         >>> err < 0.01
         True
     """
+    k, step_penalty, final_reward, bound = _check_constants(k, step_penalty, final_reward, bound)
+    s, a = _check_state_action(s, a, bound)
+    # gamma > 1 would run value iteration for its 100,000 sweeps, then fail
+    gamma = UNIT_INTERVAL.check("gamma", _number(gamma))
+    Rule(lambda v: isinstance(v, int) and v >= 2, "an integer >= 2").check("cells", cells)
+    POSITIVE.check("tol", _number(tol))
     if k == 0:
         return deterministic_q(s, a, gamma, step_penalty, final_reward, bound), 0.0
     fine = _value_iteration_q(s, a, k, gamma, step_penalty, final_reward, bound, cells, tol)
