@@ -66,6 +66,10 @@ def test_relabelling_by_hand():
     reader = RewardTermsReader(["alive", "effort"])
     td = reader({}, TensorDict())  # a reset's info: no terms, zeros
     assert td["reward_terms", "alive"] == 0 and td["reward_terms", "effort"].dtype == torch.float32
+    # a misspelt name read 0 on every step; an unnamed term was dropped from the reward
+    for names in (["alive", "efort"], ["alive"]):
+        with pytest.raises(KeyError, match="has the terms \\['alive', 'effort'\\], but"):
+            RewardTermsReader(names)({"reward_terms": {"alive": 1.0, "effort": -0.5}}, TensorDict())
 
 
 def test_the_replay_buffer_relabels_every_sample_with_the_weights_of_the_moment():

@@ -32,7 +32,9 @@ TERMS_KEY = "reward_terms"
 class RewardTermsReader(BaseInfoDictReader):
     """TorchRL info reader (``GymWrapper.set_info_dict_reader``) of ``info["reward_terms"]``,
     a dict of the step's reward terms by name: each becomes a float32 scalar entry
-    ``("reward_terms", name)``; a term the dict lacks (a reset's info) reads as 0.
+    ``("reward_terms", name)``. An info without terms (a reset's) reads as zeros; a step's
+    terms must be exactly ``names`` (``KeyError`` otherwise: a misspelt name would read 0
+    on every step, and an unnamed term would be missing from every relabelled reward).
 
     Args:
         names (Sequence[str]): the terms, in a fixed order.
@@ -51,7 +53,14 @@ class RewardTermsReader(BaseInfoDictReader):
         self.names = tuple(names)
 
     def __call__(self, info_dict: dict, tensordict: TensorDictBase) -> TensorDictBase:
-        terms = info_dict.get(TERMS_KEY) or {}
+        terms = info_dict.get(TERMS_KEY) or {}  # none at a reset: every term is 0
+        if terms and set(terms) != set(self.names):
+            # a name the env lacks would read 0 on every step, and a term not named would
+            # be missing from every relabelled reward
+            raise KeyError(
+                f"info[{TERMS_KEY!r}] has the terms {sorted(terms)}, but the reader was given "
+                f"{sorted(self.names)}: name exactly the env's terms"
+            )
         for name in self.names:
             value = torch.tensor(float(terms.get(name, 0.0)), dtype=torch.float32)
             tensordict.set((TERMS_KEY, name), value)
