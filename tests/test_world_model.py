@@ -11,6 +11,7 @@ from tensordict import TensorDict
 from tensordict.nn import set_interaction_type
 
 from torchrl_rave.modules import EnsembleLinear, EnsembleMLP, RunningNormalizer, WorldModelEnsemble
+from torchrl_rave.modules.ensemble import GaussianEnsembleMLP
 from torchrl_rave.modules.world_model import network_sizes
 from torchrl_rave.objectives import WorldModelEnsembleLoss, gaussian_nll
 
@@ -98,6 +99,26 @@ class TestEnsembleLayers:
             mlp(torch.randn(2, 6, 4), per_member=True)
         with pytest.raises(ValueError, match="4 input features"):
             mlp(torch.randn(6, 5))
+        # a layer on its own names them too (it failed inside baddbmm)
+        layer = EnsembleLinear(3, 4, 2)
+        with pytest.raises(ValueError, match="per-member input must have shape \\[3, M, 4\\]"):
+            layer(torch.randn(2, 6, 4), per_member=True)
+        with pytest.raises(ValueError, match="4 input features"):
+            layer(torch.randn(6, 5))
+
+    @pytest.mark.parametrize(
+        "build,match",
+        [
+            (lambda: EnsembleLinear(0, 4, 2), "num_members must be an integer >= 1"),
+            (lambda: EnsembleLinear(3, 0, 2), "in_features must be an integer >= 1"),  # was 1/0
+            (lambda: EnsembleMLP(3, 4, 2, num_cells=[8, 0]), "num_cells must be a sequence"),
+            (lambda: EnsembleMLP(3, 4, 2, num_cells=8), "num_cells must be a sequence"),
+            (lambda: GaussianEnsembleMLP(3, 4, 2, [8], init_max_logvar=-20.0), "init_min_logvar"),
+        ],
+    )
+    def test_bad_sizes_are_named(self, build, match):
+        with pytest.raises(ValueError, match=match):
+            build()
 
 
 class TestRunningNormalizer:

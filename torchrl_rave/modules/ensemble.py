@@ -20,6 +20,8 @@ import torch
 from torch import nn
 from torch.nn import functional as F
 
+from torchrl_rave._checks import check_positive_int
+
 
 def inplace_activation(activation: nn.Module):
     """The in-place form of a parameter-free activation (``torch.relu_`` for ``nn.ReLU``,
@@ -69,6 +71,9 @@ class EnsembleLinear(nn.Module):
 
     def __init__(self, num_members: int, in_features: int, out_features: int) -> None:
         super().__init__()
+        check_positive_int("num_members", num_members)
+        check_positive_int("in_features", in_features)
+        check_positive_int("out_features", out_features)
         self.num_members = num_members
         self.in_features = in_features
         self.out_features = out_features
@@ -100,6 +105,10 @@ class EnsembleLinear(nn.Module):
         return w
 
     def forward(self, x: torch.Tensor, per_member: bool = False) -> torch.Tensor:
+        if x.shape[-1] != self.in_features or (
+            per_member and (x.dim() != 3 or x.shape[0] != self.num_members)
+        ):
+            _check_layout(x, self.num_members, self.in_features, per_member)
         w = self._matmul_weight()
         if per_member:
             return torch.baddbmm(self.bias, x, w)
@@ -135,6 +144,10 @@ class EnsembleMLP(nn.Module):
         activation: type[nn.Module] = nn.ReLU,
     ) -> None:
         super().__init__()
+        if isinstance(num_cells, (int, str)) or not all(
+            isinstance(c, int) and not isinstance(c, bool) and c >= 1 for c in num_cells
+        ):
+            raise ValueError(f"num_cells must be a sequence of integers >= 1, got {num_cells!r}")
         self.num_members = num_members
         self.in_features = in_features
         sizes = [in_features, *num_cells, out_features]
@@ -201,8 +214,17 @@ class GaussianEnsembleMLP(nn.Module):
         init_min_logvar: float = -10.0,
     ) -> None:
         super().__init__()
-        if len(num_cells) == 0:
-            raise ValueError("a Gaussian ensemble needs at least one hidden layer")
+        if isinstance(num_cells, (int, str)) or len(num_cells) == 0:
+            raise ValueError(
+                f"a Gaussian ensemble needs at least one hidden layer: num_cells must be a "
+                f"non-empty sequence of integers, got {num_cells!r}"
+            )
+        low, high = float(init_min_logvar), float(init_max_logvar)
+        if not (math.isfinite(low) and math.isfinite(high) and low < high):
+            raise ValueError(
+                "init_min_logvar must be below init_max_logvar, both finite, got "
+                f"{init_min_logvar!r} and {init_max_logvar!r}"
+            )
         self.trunk = EnsembleMLP(
             num_members, in_features, num_cells[-1], num_cells[:-1], activation
         )
