@@ -84,8 +84,9 @@ class TestWorldModelTrainer:
             WorldModelTrainer(small_model(), train_every=0)
         with pytest.raises(ValueError, match="pretrain_updates"):
             WorldModelTrainer(small_model(), pretrain_updates=-1)
-        with pytest.raises(ValueError, match="lr"):
-            WorldModelTrainer(small_model(), lr=0.0)
+        for lr in (0.0, float("nan")):  # a NaN rate was taken, and made the model NaN
+            with pytest.raises(ValueError, match="lr must be a finite number > 0"):
+                WorldModelTrainer(small_model(), lr=lr)
 
     def test_torchrl_trainer_hook(self):
         """Registered on a TorchRL Trainer, collected batches reach the normalisers and

@@ -9,7 +9,7 @@ from tensordict import TensorDictBase
 from torchrl.data import ReplayBuffer
 from torchrl.trainers import Trainer, TrainerHookBase
 
-from torchrl_rave._checks import check_positive_int
+from torchrl_rave._checks import POSITIVE, check_positive_int
 from torchrl_rave.modules.world_model import WorldModelEnsemble
 from torchrl_rave.objectives.compile import compile_loss
 from torchrl_rave.objectives.world_model_loss import WorldModelEnsembleLoss
@@ -78,8 +78,7 @@ class WorldModelTrainer(TrainerHookBase):
     ) -> None:
         check_positive_int("pretrain_updates", pretrain_updates, minimum=0)
         check_positive_int("train_every", train_every)
-        if float(lr) <= 0:
-            raise ValueError(f"lr must be > 0, got {lr!r}")
+        POSITIVE.check("lr", float(lr) if isinstance(lr, (int, float)) else lr)  # NaN too
         self.world_model = world_model
         self.loss = loss if loss is not None else WorldModelEnsembleLoss(world_model)
         # fused Adam: one kernel per step instead of a Python loop over tensors
