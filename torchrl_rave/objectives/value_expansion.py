@@ -14,6 +14,7 @@ from tensordict.utils import NestedKey
 from torchrl.objectives.value import ValueEstimatorBase
 
 from torchrl_rave._checks import (
+    NON_NEGATIVE,
     UNIT_INTERVAL,
     check_not_empty,
     check_positive_int,
@@ -224,7 +225,7 @@ class ValueExpansionEstimator(ValueEstimatorBase):
         self.rollout = rollout
         self.mix = mix
         self.alpha_mode = alpha_mode
-        self.variance_eps = variance_eps
+        self.variance_eps = float(NON_NEGATIVE.check("variance_eps", variance_eps))
         self.check_inputs = check_inputs
         self.register_buffer("gamma", torch.tensor(float(gamma), device=self._device))
         self.register_buffer("alpha", torch.tensor(float(alpha), device=self._device))
