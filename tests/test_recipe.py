@@ -169,6 +169,8 @@ class TestConfigErrors:
             ("network.num_critics=0", "network.num_critics=0"),
             ("threads=0", "threads=0 is invalid: expected null or an integer >= 1"),
             ("env.seed=-1", "env.seed=-1 is invalid: expected an integer >= 0"),
+            # was gymnasium's traceback from inside the env's constructor
+            ("env.kwargs={foo:1}", "env.kwargs=.*got an unexpected keyword argument 'foo'"),
         ],
     )
     def test_bad_value_named_before_training(self, override, message, tmp_path):

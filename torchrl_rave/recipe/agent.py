@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import re
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -50,6 +51,7 @@ from torchrl_rave.objectives import (
 from torchrl_rave.recipe.config import (
     ALGORITHMS,
     Algorithm,
+    ConfigError,
     num_critics,
     replay_buffer_size,
     resolve_config,
@@ -249,10 +251,18 @@ def make_env(cfg: DictConfig, device: torch.device) -> TransformedEnv:
     import_env_family(cfg.env.name.split(":")[-1])
     kwargs = dict(cfg.env.kwargs or {})
     noise = float(cfg.env.get("action_noise", 0.0))  # runs saved before the key: none
-    if noise > 0:
-        base = GymWrapper(ActuatorNoise(gym.make(cfg.env.name, **kwargs), noise), device=device)
-    else:  # exactly the env of a run without the key
-        base = GymEnv(cfg.env.name, device=device, **kwargs)
+    try:
+        if noise > 0:
+            base = GymWrapper(ActuatorNoise(gym.make(cfg.env.name, **kwargs), noise), device=device)
+        else:  # exactly the env of a run without the key
+            base = GymEnv(cfg.env.name, device=device, **kwargs)
+    except TypeError as err:  # gymnasium names the keyword inside a long message
+        unknown = re.search(r"unexpected keyword argument '[^']+'", str(err))
+        if not kwargs or unknown is None:
+            raise
+        raise ConfigError(
+            [f"config key env.kwargs={kwargs}: {cfg.env.name} got an {unknown.group(0)}"]
+        ) from None
     try:
         terms = base._env.get_wrapper_attr("reward_term_names")
     except AttributeError:
