@@ -171,6 +171,9 @@ class TestConfigErrors:
             ("env.seed=-1", "env.seed=-1 is invalid: expected an integer >= 0"),
             # was gymnasium's traceback from inside the env's constructor
             ("env.kwargs={foo:1}", "env.kwargs=.*got an unexpected keyword argument 'foo'"),
+            # both failed deep inside the agent's construction (AttributeError on .low)
+            ("env.name=CartPole-v1", "action space is Discrete\\(2\\), and the recipe's"),
+            ("env.name=FrozenLake-v1", "observation space is Discrete\\(16\\)"),
         ],
     )
     def test_bad_value_named_before_training(self, override, message, tmp_path):

@@ -6,6 +6,7 @@ import re
 from dataclasses import dataclass
 from pathlib import Path
 
+import numpy as np
 import torch
 from omegaconf import DictConfig, OmegaConf
 from tensordict import TensorDict, TensorDictBase
@@ -239,6 +240,34 @@ class CheckedPolicy(TensorDictModuleBase):
         return self.policy(tensordict)
 
 
+def _check_spaces(name: str, env):
+    """``env`` itself, or a :class:`ConfigError` (the env closed) when the recipe's learners
+    cannot drive it: they act in a bounded 1-D box and read a flat observation vector."""
+    from gymnasium import spaces
+
+    act, obs = env.action_space, env.observation_space
+    problems = []
+    if not (
+        isinstance(act, spaces.Box)
+        and len(act.shape) == 1
+        and np.isfinite(act.low).all()
+        and np.isfinite(act.high).all()
+    ):
+        problems.append(
+            f"config key env.name={name!r}: its action space is {act}, and the recipe's "
+            "learners act in a continuous 1-D box with finite bounds"
+        )
+    if not (isinstance(obs, spaces.Box) and len(obs.shape) == 1):
+        problems.append(
+            f"config key env.name={name!r}: its observation space is {obs}, and the "
+            "recipe's networks read a flat observation vector (a 1-D box)"
+        )
+    if problems:
+        env.close()
+        raise ConfigError(problems)
+    return env
+
+
 def make_env(cfg: DictConfig, device: torch.device) -> TransformedEnv:
     """The training (or evaluation) env: float32, step counter, episode return, reward
     scaling; with ``env.action_noise > 0`` its transitions are made stochastic by
@@ -253,9 +282,11 @@ def make_env(cfg: DictConfig, device: torch.device) -> TransformedEnv:
     noise = float(cfg.env.get("action_noise", 0.0))  # runs saved before the key: none
     try:
         if noise > 0:
-            base = GymWrapper(ActuatorNoise(gym.make(cfg.env.name, **kwargs), noise), device=device)
+            raw = _check_spaces(cfg.env.name, gym.make(cfg.env.name, **kwargs))
+            base = GymWrapper(ActuatorNoise(raw, noise), device=device)
         else:  # exactly the env of a run without the key
             base = GymEnv(cfg.env.name, device=device, **kwargs)
+            _check_spaces(cfg.env.name, base._env)
     except TypeError as err:  # gymnasium names the keyword inside a long message
         unknown = re.search(r"unexpected keyword argument '[^']+'", str(err))
         if not kwargs or unknown is None:
