@@ -36,6 +36,7 @@ from compare import cell
 from study_report import report
 
 from torchrl_rave.recipe.checkpoint import RunCheckpoint
+from torchrl_rave.recipe.config import ConfigError
 from torchrl_rave.recipe.group import GROUP_ALGORITHMS
 from torchrl_rave.recipe.runs import Cell, GridStopped, check_cells, launch_grid, train_seconds
 from torchrl_rave.recipe.studies import load_study, result_dir, tasks
@@ -239,7 +240,10 @@ def main(argv: list[str] | None = None):
             parser.error(f"--config {config}: no such file")
     if args.command == "run" and args.jobs < 1:
         parser.error(f"--jobs must be at least 1, got {args.jobs}")
-    return run(args) if args.command == "run" else report(args)
+    try:
+        return run(args) if args.command == "run" else report(args)
+    except ConfigError as err:  # a study file's or a cell's config problems: the message
+        raise SystemExit(str(err)) from None
 
 
 if __name__ == "__main__":

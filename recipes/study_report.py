@@ -125,7 +125,7 @@ def report(args) -> str:
     if not any(
         group(study, args.results, t.label, a) for t in tasks(study) for a in study.algorithms
     ):
-        raise ValueError(
+        raise SystemExit(
             f"{study.name}: no finished cell under --results {args.results}; nothing to "
             f"report, and nothing in {out} was changed"
         )

@@ -12,6 +12,7 @@ import study
 import torch
 from test_recipe import TINY
 
+from torchrl_rave.recipe.config import ConfigError
 from torchrl_rave.recipe.runs import read_scalar
 from torchrl_rave.recipe.stats import interval95
 
@@ -337,6 +338,36 @@ def test_report_of_value_error_contrasts_and_diagnostics_by_hand(tmp_path):
             study.load_study(write_study(tmp_path, frames=bad))
 
 
+def test_a_bad_study_file_is_one_message_naming_every_problem(tmp_path, capsys):
+    """It was a traceback at the first problem; an empty task list ran nothing, and an
+    unknown algorithm or a misspelt key was found only when a cell failed."""
+    config = write_study(
+        tmp_path, tasks=[], algorithms=["ddpg", "dqn"], seeds=[0, 0], frames=0, overide=["x=1"]
+    )
+    with pytest.raises(SystemExit) as stop:
+        study.main(["run", "--config", str(config), "--out", str(tmp_path / "out")])
+    message = str(stop.value)
+    assert "unknown key 'overide'" in message
+    config = write_study(tmp_path, tasks=[], algorithms=["ddpg", "dqn"], seeds=[0, 0], frames=0)
+    with pytest.raises(SystemExit) as stop:
+        study.main(["report", "--config", str(config), "--results", str(tmp_path)])
+    message = str(stop.value)
+    assert message.startswith("4 problems in the config:")
+    for problem in ("tasks is empty", "among ['ddpg'", "got ['ddpg', 'dqn']",
+                    "seeds must be distinct integers >= 0, got [0, 0]",
+                    "frames must be an integer >= 1, got 0"):  # fmt: skip
+        assert problem in message
+    with pytest.raises(ConfigError, match="task 'A' has an unknown key 'overides'"):
+        study.load_study(write_study(tmp_path, tasks=[{"label": "A", "env": "Hopper-v5",
+                                                        "overides": ["x=1"]}]))  # fmt: skip
+    # a cell's own config problem (an override the recipe has no key for) is one message too
+    config = write_study(tmp_path, overrides=["eval.intervall=5"])
+    with pytest.raises(SystemExit, match="eval.intervall"):
+        study.main(["run", "--config", str(config), "--out", str(tmp_path / "out"),
+                    "--results", str(tmp_path / "results")])  # fmt: skip
+    assert not (tmp_path / "out").exists() or not any((tmp_path / "out").rglob("*.csv"))
+
+
 def test_a_report_without_cells_or_a_bad_command_line_changes_nothing(tmp_path):
     """A results directory with none of the study's cells (a typo in --results) is an
     error before anything is written: the committed tables are not replaced by n/a."""
@@ -345,7 +376,7 @@ def test_a_report_without_cells_or_a_bad_command_line_changes_nothing(tmp_path):
     (figures / "tiny.md").write_text("the committed table")
     config = write_study(tmp_path)
     for results in (tmp_path / "missing", tmp_path):
-        with pytest.raises(ValueError, match="tiny: no finished cell under --results"):
+        with pytest.raises(SystemExit, match="tiny: no finished cell under --results"):
             study.main(["report", "--config", str(config), "--results", str(results),
                         "--figures", str(figures)])  # fmt: skip
     assert [p.name for p in figures.iterdir()] == ["tiny.md"]

@@ -11,7 +11,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from torchrl_rave._checks import NON_NEGATIVE_INT, POSITIVE_INT
 
-__all__ = ["Task", "load_study", "report_frames", "result_dir", "tasks"]
+__all__ = ["STUDY_KEYS", "TASK_KEYS", "Task", "load_study", "report_frames", "result_dir", "tasks"]
 
 
 @dataclass(frozen=True)
@@ -44,34 +44,66 @@ def tasks(study: DictConfig) -> list[Task]:
     return out
 
 
+STUDY_KEYS = ("name", "tasks", "algorithms", "seeds", "frames", "overrides", "contrasts",
+              "report_at")  # fmt: skip
+TASK_KEYS = ("label", "env", "overrides", "reference", "cells_from")
+
+
 def load_study(path: Path) -> DictConfig:
     """A study file, checked: its keys, its task entries and their distinct labels, its
-    ``contrasts`` (optional pairs of task labels the report compares) and its ``report_at``
-    (optional frames at which the report's tables read the metrics; half and all of the
-    budget by default)."""
+    algorithms, seeds and budget, its ``contrasts`` (optional pairs of task labels the
+    report compares) and its ``report_at`` (optional frames at which the report's tables
+    read the metrics; half and all of the budget by default). Every problem is raised at
+    once, as one :class:`~torchrl_rave.recipe.config.ConfigError`."""
+    from torchrl_rave.recipe.config import ALGORITHMS, ConfigError
+
     study = OmegaConf.load(path)
-    for key in ("name", "tasks", "algorithms", "seeds", "frames"):
-        if key not in study:
-            raise ValueError(f"{path}: the study has no {key!r}")
+    problems = [f"the study has no {key!r}" for key in STUDY_KEYS[:5] if key not in study]
+    problems += [
+        f"unknown key {key!r}: a study has {list(STUDY_KEYS)}"
+        for key in study if key not in STUDY_KEYS
+    ]  # fmt: skip
+    if problems:
+        raise ConfigError([f"{path}: {p}" for p in problems])
+    if not study.tasks:
+        problems.append("tasks is empty")
     for entry in study.tasks:
-        if not isinstance(entry, str) and not {"label", "env"} <= set(entry):
-            raise ValueError(f"{path}: a task must be an env id or have a label and an env")
+        if isinstance(entry, str):
+            continue
+        if not isinstance(entry, DictConfig) or not {"label", "env"} <= set(entry):
+            problems.append(f"a task must be an env id or have a label and an env, got {entry}")
+        else:
+            problems += [
+                f"task {entry.label!r} has an unknown key {key!r} (a task has {list(TASK_KEYS)})"
+                for key in entry if key not in TASK_KEYS
+            ]  # fmt: skip
+    algorithms = list(study.algorithms)
+    unknown = [a for a in algorithms if a not in ALGORITHMS]
+    if not algorithms or unknown or len(set(algorithms)) != len(algorithms):
+        problems.append(
+            f"algorithms must be distinct, not empty and among {list(ALGORITHMS)}, got {algorithms}"
+        )
     seeds = list(study.seeds)
     if not seeds or len(set(seeds)) != len(seeds) or not all(map(NON_NEGATIVE_INT.test, seeds)):
-        raise ValueError(f"{path}: seeds must be distinct integers >= 0, got {seeds}")
-    if not POSITIVE_INT.test(study.frames):
-        raise ValueError(f"{path}: frames must be an integer >= 1, got {study.frames!r}")
+        problems.append(f"seeds must be distinct integers >= 0, got {seeds}")
+    frames_ok = POSITIVE_INT.test(study.frames)
+    if not frames_ok:
+        problems.append(f"frames must be an integer >= 1, got {study.frames!r}")
+    if problems:  # the checks below read the task labels and the budget
+        raise ConfigError([f"{path}: {p}" for p in problems])
     labels = [t.label for t in tasks(study)]
     if len(set(labels)) != len(labels):
-        raise ValueError(f"{path}: task labels repeat: {labels}")
-    for pair in study.get("contrasts", []):
+        problems.append(f"task labels repeat: {labels}")
+    for pair in study.get("contrasts", None) or []:
         if len(pair) != 2 or not set(pair) <= set(labels):
-            raise ValueError(f"{path}: a contrast is two of the task labels {labels}, got {pair}")
-    at = list(study.get("report_at", []))
+            problems.append(f"a contrast is two of the task labels {labels}, got {list(pair)}")
+    at = list(study.get("report_at", None) or [])
     if not all(isinstance(f, int) and 0 < f <= study.frames for f in at) or at != sorted(set(at)):
-        raise ValueError(
-            f"{path}: report_at must be increasing frame counts in (0, {study.frames}], got {at}"
+        problems.append(
+            f"report_at must be increasing frame counts in (0, {study.frames}], got {at}"
         )
+    if problems:
+        raise ConfigError([f"{path}: {p}" for p in problems])
     return study
 
 
