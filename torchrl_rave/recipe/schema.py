@@ -93,7 +93,11 @@ class EnvConfig:
 
 @dataclass
 class CollectorConfig:
-    total_frames: int = key(15_000, "environment frames in the run", POSITIVE_INT)
+    total_frames: int = key(
+        15_000,
+        "environment frames in the run, rounded up to whole `collector.frames_per_batch` batches",
+        POSITIVE_INT,
+    )
     frames_per_batch: int = key(
         250, "frames per collector batch (the unit of logging and checkpoints)", POSITIVE_INT
     )
