@@ -12,7 +12,7 @@ from test_world_model import small_model
 from torch import nn
 from torchrl.data import Bounded
 from torchrl.modules import MLP, Actor, ProbabilisticActor, TanhNormal, ValueOperator
-from torchrl.objectives import DDPGLoss, REDQLoss, SACLoss, SoftUpdate, TD3Loss
+from torchrl.objectives import DDPGLoss, IQLLoss, REDQLoss, SACLoss, SoftUpdate, TD3Loss
 
 from torchrl_rave import (
     EnsembleDDPGLoss,
@@ -629,6 +629,20 @@ class TestBadInput:
         loss = loss_cls(actor, critic_net(), num_qvalue_nets=4)
         with pytest.raises(ValueError, match=f"{loss_cls.__name__} bootstraps from .*entropy"):
             cls.for_loss(loss, world_model=world_model(4), gamma=0.9)
+
+    def test_a_loss_bootstrapping_from_a_state_value_network_is_refused(self):
+        body = TensorDictModule(
+            nn.Sequential(MLP(in_features=S, out_features=2 * A, num_cells=[16]), NormalParamExtractor()),
+            in_keys=["observation"], out_keys=["loc", "scale"],
+        )  # fmt: skip
+        actor = ProbabilisticActor(
+            body, in_keys=["loc", "scale"], distribution_class=TanhNormal,
+            spec=Bounded(-1, 1, (A,)),
+        )  # fmt: skip
+        value = ValueOperator(MLP(in_features=S, out_features=1, num_cells=[16]), ["observation"])
+        loss = IQLLoss(actor, critic_net(), value, num_qvalue_nets=4)
+        with pytest.raises(ValueError, match="IQLLoss bootstraps from a separate state-value"):
+            RAVEValueEstimator.for_loss(loss, world_model=world_model(4), gamma=0.9)
 
     def test_tensordict_alpha_needs_the_key(self):
         est = self.est(alpha_mode="tensordict")

@@ -55,6 +55,8 @@ class TargetNetworks:
         ``CQLLoss``, ``CrossQLoss``) is refused: it bootstraps from
         ``Q(s', a') - alpha log pi(a' | s')`` with ``a'`` sampled from its policy, and the
         estimators' targets, ``Q(s', pi(s'))`` of a deterministic actor, would drop that term.
+        So is a loss with both a ``qvalue_network`` and a ``value_network`` (``IQLLoss``),
+        which bootstraps from the state-value network.
         """
         if hasattr(loss_module, "log_alpha"):
             name = type(loss_module).__name__
@@ -64,6 +66,16 @@ class TargetNetworks:
                 "Value-expansion estimators bootstrap from Q(s', pi(s')) of a deterministic "
                 f"actor, so installed in {name} they would drop its entropy term. Use them "
                 "with torchrl_rave.EnsembleDDPGLoss or TD3Loss(num_qvalue_nets=K)."
+            )
+        if hasattr(loss_module, "qvalue_network_params") and hasattr(
+            loss_module, "value_network_params"
+        ):
+            name = type(loss_module).__name__
+            raise ValueError(
+                f"{name} bootstraps from a separate state-value network V(s') (it has both a "
+                "qvalue_network and a value_network); value-expansion estimators bootstrap from "
+                f"Q(s', pi(s')) and would replace that target. Use them with "
+                "torchrl_rave.EnsembleDDPGLoss or TD3Loss(num_qvalue_nets=K)."
             )
         actor = (
             actor_network
