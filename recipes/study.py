@@ -12,9 +12,9 @@ A study (``recipes/study/<name>.yaml``) is a grid of tasks x algorithms x seeds 
 ``rave_mujoco.py`` runs at one frame budget. Runs live under ``--out`` (not kept); as each
 cell finishes, its metric CSVs are copied to ``results/<name>/<task>/<algorithm>/seed<k>/``
 with ``cell.json`` (the commit and the full config it ran with; ``starts``, the commit and
-first frame of each start, where a cell resumed in a later session; ``train_s``, the cell's
+first frame and machine of each start, where a cell resumed in a later session; ``train_s``, the cell's
 own collection, update and evaluation seconds; ``runner_s``, the runner's age when the cell
-ended; ``machine``, the CPU and torch that ran it; ``group``, the seeds of a seed group it
+ended; ``machine``, the CPU and torch of its last start; ``group``, the seeds of a seed group it
 ran in) and, with
 ``--commit``, committed at once. A cell with a ``cell.json`` is done and never rerun; an
 interrupted one resumes from its last checkpoint when its run directory survived.
@@ -107,7 +107,7 @@ def export(run: Cell, dest: Path, started: float, commit: bool, group: Cell | No
         "runner_s": round(time.time() - started),
         "finished": time.strftime("%Y-%m-%d %H:%M:%S %Z"),
     }
-    info["machine"] = machine()
+    info["machine"] = (starts[-1].get("machine") if starts else None) or machine()
     if group is not None:
         info["group"] = {"seeds": list(group.seeds)}
     (dest / "cell.json").write_text(json.dumps(info, indent=1) + "\n")
@@ -207,7 +207,9 @@ def run(args) -> None:
     try:
         todo = [c for c in cells if not c.finished()]
         check_cells(todo, RECIPE.parent)  # every cell's config, before any starts
-        record = {"commit": git(ROOT, "rev-parse", "HEAD")}  # written down at each start
+        # written down at each start: a cell resumed in another session may have run on
+        # another machine, whose rounding changes its numbers from there on
+        record = {"commit": git(ROOT, "rev-parse", "HEAD"), "machine": machine()}
         launch_grid(RECIPE, todo, args.jobs, on_done=done, record=record)
     except GridStopped as stop:
         raise SystemExit(str(stop)) from None

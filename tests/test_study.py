@@ -118,6 +118,7 @@ def test_run_exports_a_finished_cell_and_skips_it_next_time(tmp_path, capsys, mo
     assert info["train_s"] == round(timed) and info["runner_s"] >= info["train_s"]
     assert info["config"]["algorithm"] == "ddpg" and info["config"]["env"]["seed"] == 0
     assert info["machine"]["torch"] == torch.__version__ and info["machine"]["cpu"]
+    assert info["starts"][-1]["machine"] == info["machine"]  # each start records its own
     steps, _ = read_scalar(cell, "eval/return")
     assert steps.tolist() == [200, 400]
     assert not list(cell.rglob("checkpoint*"))
