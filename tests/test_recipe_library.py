@@ -185,6 +185,27 @@ class TestOtherLoggers:
             read_scalar(tmp_path, "eval/return")
 
 
+def test_a_misspelt_metric_is_named_with_the_close_ones(tmp_path):
+    # it said "no CSV or TensorBoard metrics here" of a run full of them
+    for metric, value in (
+        ("eval/return", 1.0),
+        ("eval/return_std", 0.0),
+        ("train/loss_critic", 2.0),
+    ):
+        path = tmp_path / "ddpg" / "scalars" / f"{metric}.csv"
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_text(f"100,{value}\n")
+    with pytest.raises(FileNotFoundError, match=re.escape(
+        "no 'eval/retrun' logged; did you mean ['eval/return', 'eval/return_std']?"
+    )):  # fmt: skip
+        read_scalar(tmp_path, "eval/retrun")
+    with pytest.raises(FileNotFoundError, match=re.escape(
+        "no 'zzz' logged; it logged ['eval/return', 'eval/return_std', 'train/loss_critic']"
+    )):  # fmt: skip
+        read_scalar(tmp_path, "zzz")
+    assert read_scalar(tmp_path, "train/loss_critic")[1].tolist() == [2.0]
+
+
 def test_no_sys_path_edits_anywhere():
     offenders = [
         str(p.relative_to(ROOT))

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import contextlib
 import csv
+import difflib
 import glob
 import json
 import os
@@ -58,6 +59,16 @@ def read_scalar(run_dir: str | Path, metric: str) -> tuple[np.ndarray, np.ndarra
     elif (run_dir / "mlflow.db").is_file():
         rows = _mlflow_rows(run_dir, metric)
     else:
+        logged = sorted(
+            str(
+                p.relative_to(run_dir / p.relative_to(run_dir).parts[0] / "scalars").with_suffix("")
+            )
+            for p in run_dir.glob("*/scalars/**/*.csv")
+        )
+        if logged:  # a misspelt metric: name the close ones, or what there is
+            close = difflib.get_close_matches(metric, logged, n=3)
+            hint = f"did you mean {close}?" if close else f"it logged {logged}"
+            raise FileNotFoundError(f"{run_dir}: no {metric!r} logged; {hint}")
         raise FileNotFoundError(f"{run_dir}: no {metric!r} logged{_backend_note(run_dir)}")
     latest = dict(rows)
     steps = np.array(sorted(latest), dtype=np.int64)
