@@ -71,6 +71,17 @@ def batch(B=8, terminal=(), seed=1):
     )
 
 
+def stochastic_actor():
+    """A SAC-style actor: a TanhNormal policy over the action box."""
+    body = TensorDictModule(
+        nn.Sequential(MLP(in_features=S, out_features=2 * A, num_cells=[16]), NormalParamExtractor()),
+        in_keys=["observation"], out_keys=["loc", "scale"],
+    )  # fmt: skip
+    return ProbabilisticActor(
+        body, in_keys=["loc", "scale"], distribution_class=TanhNormal, spec=Bounded(-1, 1, (A,))
+    )
+
+
 def ddpg_loss():
     torch.manual_seed(3)
     loss = DDPGLoss(actor_net(), critic_net(), delay_actor=True, delay_value=True)
@@ -618,29 +629,13 @@ class TestBadInput:
     def test_entropy_regularised_losses_are_refused(self, cls, loss_cls):
         # SAC-style losses put Q(s', a') - alpha log pi(a'|s') in their target; an estimator
         # installed there would silently bootstrap without the entropy term.
-        body = TensorDictModule(
-            nn.Sequential(MLP(in_features=S, out_features=2 * A, num_cells=[16]), NormalParamExtractor()),
-            in_keys=["observation"], out_keys=["loc", "scale"],
-        )  # fmt: skip
-        actor = ProbabilisticActor(
-            body, in_keys=["loc", "scale"], distribution_class=TanhNormal,
-            spec=Bounded(-1, 1, (A,)),
-        )  # fmt: skip
-        loss = loss_cls(actor, critic_net(), num_qvalue_nets=4)
+        loss = loss_cls(stochastic_actor(), critic_net(), num_qvalue_nets=4)
         with pytest.raises(ValueError, match=f"{loss_cls.__name__} bootstraps from .*entropy"):
             cls.for_loss(loss, world_model=world_model(4), gamma=0.9)
 
     def test_a_loss_bootstrapping_from_a_state_value_network_is_refused(self):
-        body = TensorDictModule(
-            nn.Sequential(MLP(in_features=S, out_features=2 * A, num_cells=[16]), NormalParamExtractor()),
-            in_keys=["observation"], out_keys=["loc", "scale"],
-        )  # fmt: skip
-        actor = ProbabilisticActor(
-            body, in_keys=["loc", "scale"], distribution_class=TanhNormal,
-            spec=Bounded(-1, 1, (A,)),
-        )  # fmt: skip
         value = ValueOperator(MLP(in_features=S, out_features=1, num_cells=[16]), ["observation"])
-        loss = IQLLoss(actor, critic_net(), value, num_qvalue_nets=4)
+        loss = IQLLoss(stochastic_actor(), critic_net(), value, num_qvalue_nets=4)
         with pytest.raises(ValueError, match="IQLLoss bootstraps from a separate state-value"):
             RAVEValueEstimator.for_loss(loss, world_model=world_model(4), gamma=0.9)
 
