@@ -530,6 +530,16 @@ class TestCompare:
             compare.main([*good, "--seeds", "0", "0", "--jobs", "2"])
         with pytest.raises(SystemExit, match="Could not override 'estimator.hoirzon'"):
             compare.main([*good, "--", "estimator.hoirzon=3"])
+        # each distinct env is built once: a space the learners cannot use, or a keyword
+        # the env does not take, is found before any cell starts, not by every cell
+        grid = ["--algorithms", "ddpg", "td3", "--seeds", "0", "--frames", "300",
+                "--out", str(tmp_path / "grid")]  # fmt: skip
+        with pytest.raises(SystemExit, match=r"'CartPole-v1': its action space is Discrete\(2\)"
+                           r".* \(in 2 cells: "):  # fmt: skip
+            compare.main([*grid, "--envs", "CartPole-v1", "Pendulum-v1"])
+        with pytest.raises(SystemExit, match=r"Pendulum-v1 got an unexpected keyword argument "
+                                             r"'foo' \(in 2 cells:"):  # fmt: skip
+            compare.main([*grid, "--envs", "Pendulum-v1", "--", "env.kwargs={g:9.81,foo:1}"])
         assert not (tmp_path / "grid").exists()
 
     def test_reference_column_is_labelled(self, tmp_path):

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import re
 from dataclasses import dataclass
 from pathlib import Path
@@ -268,6 +269,35 @@ def _check_spaces(name: str, env):
     return env
 
 
+@contextlib.contextmanager
+def _named_kwargs_error(name: str, kwargs: dict):
+    """A keyword the env does not take, as a :class:`ConfigError` naming it (gymnasium
+    names it inside a long message)."""
+    try:
+        yield
+    except TypeError as err:
+        unknown = re.search(r"unexpected keyword argument '[^']+'", str(err))
+        if not kwargs or unknown is None:
+            raise
+        raise ConfigError(
+            [f"config key env.kwargs={kwargs}: {name} got an {unknown.group(0)}"]
+        ) from None
+
+
+def check_env(cfg: DictConfig) -> None:
+    """Builds ``cfg``'s env once (the gymnasium env, without TorchRL's wrapper), checks
+    the keywords it takes and the spaces the learners need, and closes it; a
+    :class:`ConfigError` names a problem. A grid runs it once per distinct env before any
+    cell starts (:func:`~torchrl_rave.recipe.runs.check_cells`)."""
+    import gymnasium as gym
+
+    import_env_family(cfg.env.name.split(":")[-1])
+    kwargs = dict(cfg.env.kwargs or {})
+    with _named_kwargs_error(cfg.env.name, kwargs):
+        env = gym.make(cfg.env.name, **kwargs)
+    _check_spaces(cfg.env.name, env).close()
+
+
 def make_env(cfg: DictConfig, device: torch.device) -> TransformedEnv:
     """The training (or evaluation) env: float32, step counter, episode return, reward
     scaling; with ``env.action_noise > 0`` its transitions are made stochastic by
@@ -280,20 +310,13 @@ def make_env(cfg: DictConfig, device: torch.device) -> TransformedEnv:
     import_env_family(cfg.env.name.split(":")[-1])
     kwargs = dict(cfg.env.kwargs or {})
     noise = float(cfg.env.get("action_noise", 0.0))  # runs saved before the key: none
-    try:
+    with _named_kwargs_error(cfg.env.name, kwargs):
         if noise > 0:
             raw = _check_spaces(cfg.env.name, gym.make(cfg.env.name, **kwargs))
             base = GymWrapper(ActuatorNoise(raw, noise), device=device)
         else:  # exactly the env of a run without the key
             base = GymEnv(cfg.env.name, device=device, **kwargs)
             _check_spaces(cfg.env.name, base._env)
-    except TypeError as err:  # gymnasium names the keyword inside a long message
-        unknown = re.search(r"unexpected keyword argument '[^']+'", str(err))
-        if not kwargs or unknown is None:
-            raise
-        raise ConfigError(
-            [f"config key env.kwargs={kwargs}: {cfg.env.name} got an {unknown.group(0)}"]
-        ) from None
     try:
         terms = base._env.get_wrapper_attr("reward_term_names")
     except AttributeError:

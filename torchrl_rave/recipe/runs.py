@@ -248,8 +248,11 @@ def check_cells(cells: Sequence[Cell], config_dir: str | Path, config_name: str 
     :func:`~torchrl_rave.recipe.config.check_config`. A mistake in a grid (an env id, an
     algorithm, an extra key) would otherwise fail each of its runs in turn, each with its
     own log; here every problem is raised at once, as one
-    :class:`~torchrl_rave.recipe.config.ConfigError` naming the cells."""
+    :class:`~torchrl_rave.recipe.config.ConfigError` naming the cells. Each distinct env
+    is built once (:func:`~torchrl_rave.recipe.agent.check_env`): a keyword it does not
+    take, a space the learners cannot use or an extra not installed is found here too."""
     from hydra import compose, initialize_config_dir
+    from omegaconf import OmegaConf
 
     from torchrl_rave.recipe.config import ConfigError, check_config
 
@@ -260,18 +263,26 @@ def check_cells(cells: Sequence[Cell], config_dir: str | Path, config_name: str 
         "twice?)"
         for run_dir, n in counts.items() if n > 1
     ]  # fmt: skip
+    envs: dict[str, list[str]] = {}  # each distinct env's problems, found building it once
     with initialize_config_dir(config_dir=str(Path(config_dir).resolve()), version_base="1.3"):
         for cell in cells:
             if cell.finished():
                 continue
             overrides = [*cell.overrides, f"collector.total_frames={cell.frames}"]
             try:
-                check_config(compose(config_name, overrides=overrides))
+                cfg = compose(config_name, overrides=overrides)
+                check_config(cfg)
+                kwargs = cfg.env.kwargs
+                kwargs = None if kwargs is None else OmegaConf.to_container(kwargs)
+                env = json.dumps([cfg.env.name, kwargs], sort_keys=True)
+                if env not in envs:
+                    envs[env] = _env_problems(cfg)
+                problems = envs[env]
             except ConfigError as e:
-                for problem in e.problems:
-                    where.setdefault(problem, []).append(cell.run_dir)
+                problems = e.problems
             except Exception as e:  # hydra's own: a key the config does not have, bad syntax
-                problem = f"{type(e).__name__}: {e}".replace("\n", " ")
+                problems = [f"{type(e).__name__}: {e}".replace("\n", " ")]
+            for problem in problems:
                 where.setdefault(problem, []).append(cell.run_dir)
     if where or shared:
         raise ConfigError(shared + [
@@ -279,6 +290,21 @@ def check_cells(cells: Sequence[Cell], config_dir: str | Path, config_name: str 
             f"{', ...' if len(dirs) > 1 else ''})"
             for problem, dirs in where.items()
         ])  # fmt: skip
+
+
+def _env_problems(cfg) -> list[str]:
+    """The problems of building ``cfg``'s env (:func:`~torchrl_rave.recipe.agent.check_env`):
+    a keyword or a space the learners cannot use, a family whose extra is not installed."""
+    from torchrl_rave.recipe.agent import check_env
+    from torchrl_rave.recipe.config import ConfigError
+
+    try:
+        check_env(cfg)
+    except ConfigError as e:
+        return e.problems
+    except Exception as e:  # e.g. gymnasium's DependencyNotInstalled
+        return [f"env.name={cfg.env.name!r}: {type(e).__name__}: {str(e).splitlines()[0]}"]
+    return []
 
 
 def _start_cell(script: Path, cell: Cell, record: dict) -> subprocess.Popen:
