@@ -97,8 +97,9 @@ def export(run: Cell, dest: Path, started: float, commit: bool, group: Cell | No
         target.parent.mkdir(parents=True, exist_ok=True)
         shutil.copyfile(csv, target)
     starts = (group or run).starts()
+    last = starts[-1] if starts else {}
     info = {
-        "commit": (starts[-1].get("commit") if starts else None) or git(ROOT, "rev-parse", "HEAD"),
+        "commit": last.get("commit") or git(ROOT, "rev-parse", "HEAD"),
         "frames": run.frames,
         "overrides": list(run.overrides),
         "config": RunCheckpoint(run.run_dir).config(),
@@ -107,7 +108,7 @@ def export(run: Cell, dest: Path, started: float, commit: bool, group: Cell | No
         "runner_s": round(time.time() - started),
         "finished": time.strftime("%Y-%m-%d %H:%M:%S %Z"),
     }
-    info["machine"] = (starts[-1].get("machine") if starts else None) or machine()
+    info["machine"] = last.get("machine") or machine()
     if group is not None:
         info["group"] = {"seeds": list(group.seeds)}
     (dest / "cell.json").write_text(json.dumps(info, indent=1) + "\n")

@@ -58,8 +58,9 @@ class ToyEnv(gym.Env):
         final_reward: float = FINAL_REWARD,
         bound: float = BOUND,
     ) -> None:
-        self.k, self.step_penalty, self.final_reward, self.bound = _check_constants(
-            k, step_penalty, final_reward, bound
+        self.k = NON_NEGATIVE.check("k", _number(k))
+        self.step_penalty, self.final_reward, self.bound = _check_constants(
+            step_penalty, final_reward, bound
         )
         self.action_space = spaces.Box(-1.0, 1.0, shape=(1,), dtype=np.float32)
         self.observation_space = spaces.Box(-np.inf, np.inf, shape=(1,), dtype=np.float32)
@@ -84,9 +85,8 @@ class ToyEnv(gym.Env):
         return np.array([self._s], dtype=np.float32), reward, terminated, False, {}
 
 
-def _check_constants(k, step_penalty, final_reward, bound) -> tuple[float, float, float, float]:
+def _check_constants(step_penalty, final_reward, bound) -> tuple[float, float, float]:
     return (
-        NON_NEGATIVE.check("k", _number(k)),
         FINITE.check("step_penalty", _number(step_penalty)),
         FINITE.check("final_reward", _number(final_reward)),
         POSITIVE.check("bound", _number(bound)),
@@ -124,7 +124,7 @@ def deterministic_q(
         >>> round(deterministic_q(0.0, 1.0), 3)  # six steps: five penalties, then the goal
         431.603
     """
-    _, step_penalty, final_reward, bound = _check_constants(0.0, step_penalty, final_reward, bound)
+    step_penalty, final_reward, bound = _check_constants(step_penalty, final_reward, bound)
     s, a = _check_state_action(s, a, bound)
     gamma = UNIT_INTERVAL.check("gamma", _number(gamma))
 
@@ -167,7 +167,8 @@ def ground_truth_q(
         >>> err < 0.01
         True
     """
-    k, step_penalty, final_reward, bound = _check_constants(k, step_penalty, final_reward, bound)
+    k = NON_NEGATIVE.check("k", _number(k))
+    step_penalty, final_reward, bound = _check_constants(step_penalty, final_reward, bound)
     s, a = _check_state_action(s, a, bound)
     # gamma > 1 would run value iteration for its 100,000 sweeps, then fail
     gamma = UNIT_INTERVAL.check("gamma", _number(gamma))

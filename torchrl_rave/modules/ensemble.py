@@ -109,6 +109,12 @@ class EnsembleLinear(nn.Module):
             per_member and (x.dim() != 3 or x.shape[0] != self.num_members)
         ):
             _check_layout(x, self.num_members, self.in_features, per_member)
+        return self._affine(x, per_member)
+
+    def _affine(self, x: torch.Tensor, per_member: bool) -> torch.Tensor:
+        """:meth:`forward` without its input check: the ensemble MLPs check their input
+        once and call their layers through this, so the update step pays no check per
+        layer."""
         w = self._matmul_weight()
         if per_member:
             return torch.baddbmm(self.bias, x, w)
@@ -166,7 +172,7 @@ class EnsembleMLP(nn.Module):
         _check_layout(x, self.num_members, self.in_features, per_member)
         for n, layer in enumerate(self.layers):
             # after the first layer every member has its own rows
-            x = layer(x, per_member=per_member or n > 0)
+            x = layer._affine(x, per_member or n > 0)
             if n < len(self.layers) - 1:
                 x = self.activate(x)
         return x
@@ -237,8 +243,8 @@ class GaussianEnsembleMLP(nn.Module):
         self, x: torch.Tensor, per_member: bool = False
     ) -> tuple[torch.Tensor, torch.Tensor]:
         h = self.trunk.activate(self.trunk(x, per_member=per_member))
-        mean = self.mean_head(h, per_member=True)
-        raw = self.logvar_head(h, per_member=True)
+        mean = self.mean_head._affine(h, True)  # h is the trunk's own output
+        raw = self.logvar_head._affine(h, True)
         logvar = self.max_logvar - F.softplus(self.max_logvar - raw)
         logvar = self.min_logvar + F.softplus(logvar - self.min_logvar)
         return mean, logvar

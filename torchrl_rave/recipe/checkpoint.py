@@ -518,16 +518,15 @@ def check_new_run_dir(run_dir: str | Path, group: bool = False) -> None:
     checkpoint, or a group before every seed had one, has nothing to resume and may be
     started afresh."""
     root = Path(run_dir)
-    group_file = root / "group.json"
-    if group_file.is_file():
-        seeds = json.loads(group_file.read_text())["config"]["seeds"]
-        newest = [_newest_frame(root / f"seed{s}") for s in seeds]
+    seeds = _group_seeds(root)
+    if seeds is not None:
+        newest = [newest_frame(root / f"seed{s}") for s in seeds]
         if not group or None not in newest:
             raise FileExistsError(
                 f"{root} holds a seed group already: pass resume={root} to continue it, "
                 "or train into a new directory"
             )
-    frame = _newest_frame(root)
+    frame = newest_frame(root)
     if frame is not None:
         raise FileExistsError(
             f"{root} holds a run already (its newest checkpoint is at {frame} frames): pass "
@@ -535,9 +534,16 @@ def check_new_run_dir(run_dir: str | Path, group: bool = False) -> None:
         )
 
 
-def _newest_frame(run_dir: Path) -> int | None:
-    saved = RunCheckpoint(run_dir).checkpoints() if run_dir.is_dir() else []
+def newest_frame(run_dir: str | Path) -> int | None:
+    """The frame of a run directory's newest checkpoint (damaged or not), or ``None``."""
+    saved = RunCheckpoint(run_dir).checkpoints() if Path(run_dir).is_dir() else []
     return int(saved[-1].name.removeprefix(PREFIX)) if saved else None
+
+
+def _group_seeds(run_dir: Path) -> list[int] | None:
+    """The seeds of the seed group whose directory ``run_dir`` is, or ``None``."""
+    group_file = run_dir / "group.json"
+    return json.loads(group_file.read_text())["config"]["seeds"] if group_file.is_file() else None
 
 
 def missing_checkpoint(run_dir: str | Path) -> FileNotFoundError:
@@ -552,9 +558,8 @@ def missing_checkpoint(run_dir: str | Path) -> FileNotFoundError:
             f"{run_dir} is a run's checkpoints folder: pass the run directory that holds "
             f"it, {Path(run_dir).parent}"
         )
-    group_file = Path(run_dir) / "group.json"
-    if group_file.is_file():
-        seeds = json.loads(group_file.read_text())["config"]["seeds"]
+    seeds = _group_seeds(Path(run_dir))
+    if seeds is not None:
         runs = [str(Path(run_dir) / f"seed{s}") for s in seeds]
         return FileNotFoundError(
             f"{run_dir} is a seed group's directory, which holds one run per seed; "

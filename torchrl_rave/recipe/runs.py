@@ -21,7 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
-from torchrl_rave.recipe.checkpoint import PREFIX, DamagedCheckpoint, RunCheckpoint
+from torchrl_rave.recipe.checkpoint import DamagedCheckpoint, RunCheckpoint, newest_frame
 
 __all__ = [
     "Cell",
@@ -220,13 +220,8 @@ class Cell:
     def checkpoint_frame(self) -> int | None:
         """The frame of the newest checkpoint (for a group, the oldest of its seeds'
         newest ones), or ``None`` when some run has none."""
-        frames = []
-        for m in self.members():
-            saved = RunCheckpoint(m.run_dir).checkpoints()
-            if not saved:
-                return None
-            frames.append(int(saved[-1].name.removeprefix(PREFIX)))
-        return min(frames)
+        frames = [newest_frame(m.run_dir) for m in self.members()]
+        return None if None in frames else min(frames)
 
     def starts(self) -> list[dict]:
         """What :func:`launch_grid` wrote down at each start of this run, oldest first:

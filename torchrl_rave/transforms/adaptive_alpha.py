@@ -77,8 +77,9 @@ class AdaptiveAlpha(Transform):
         obs_key, action_key, next_key = self.in_keys
         S, A = self.world_model.observation_dim, self.world_model.action_dim
         dtype = self.world_model.dtype
+        # names a missing entry or a wrong width; no NaN scan (a device sync) per sample
         obs, action, next_obs = (
-            get_checked(tensordict, key, size, dtype=dtype, floating=True)
+            get_checked(tensordict, key, size, check_finite=False, dtype=dtype, floating=True)
             for key, size in ((obs_key, S), (action_key, A), (next_key, S))
         )
         err = self.world_model.mean_prediction_error(obs, action, next_obs)
