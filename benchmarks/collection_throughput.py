@@ -3,6 +3,7 @@
     python benchmarks/collection_throughput.py                    # Hopper-v5, 1 2 4 workers
     python benchmarks/collection_throughput.py --env InvertedPendulum-v5 --workers 1 2
     python benchmarks/collection_throughput.py --backends process     # without Ray
+    python benchmarks/collection_throughput.py --record-cost          # the episode record
 
 It builds the recipe's env and exploration policy (an untrained RAVE actor with its
 Gaussian noise) from ``recipes/config.yaml`` and times ``collector.backend=direct``, then
@@ -12,6 +13,11 @@ start-up is not counted), with a weight push after every batch as in training; t
 of ``--repeats`` rounds, since a shared 2-core machine's noise only ever slows a round. Ray runs
 a fresh local instance per row, with as many CPUs as workers. No learning happens, so this
 is the collector's ceiling.
+
+The ``direct`` row's env keeps the episode in progress for the checkpoints, as a training
+run's does (:class:`~torchrl_rave.envs.EpisodeReplay`). ``--record-cost`` times only the
+direct backend, with and without that record, rounds interleaved, and writes
+``episode_record_cost.json``.
 """
 
 from __future__ import annotations
@@ -35,7 +41,14 @@ from torchrl_rave.recipe.config import check_config
 ROOT = Path(__file__).resolve().parents[1]
 
 
-def measure(env_name: str, backend: str, workers: int, frames_per_batch: int, batches: int):
+def measure(
+    env_name: str,
+    backend: str,
+    workers: int,
+    frames_per_batch: int,
+    batches: int,
+    record_episode: bool = False,
+):
     cfg = recipe_config(
         [
             f"env.name={env_name}",
@@ -48,7 +61,7 @@ def measure(env_name: str, backend: str, workers: int, frames_per_batch: int, ba
         ]
     )
     algo = check_config(cfg)
-    env = make_env(cfg, torch.device("cpu"))
+    env = make_env(cfg, torch.device("cpu"), record_episode=record_episode)
     _, policy = make_actor(cfg, env, algo)
     collector = make_collector(cfg, env, policy, torch.device("cpu"))
     try:
@@ -76,20 +89,31 @@ def main(argv=None) -> dict:
     parser.add_argument("--frames-per-batch", type=count(), default=1000)
     parser.add_argument("--batches", type=count(), default=5)
     parser.add_argument("--repeats", type=count(), default=2)
-    parser.add_argument("--json", default=str(ROOT / "benchmarks" / "collection_throughput.json"))
+    parser.add_argument(
+        "--record-cost",
+        action="store_true",
+        help="the direct backend with and without the episode record, alone",
+    )
+    parser.add_argument("--json", default=None, help="default: benchmarks/<what was timed>.json")
     args = parser.parse_args(argv)
     torch.set_num_threads(1)  # the learner's share; workers are single-threaded processes
-    runs = [("direct", 1)] + [(b, n) for b in args.backends for n in args.workers]
+    # (name, backend, workers, whether the learner's env keeps the episode, as training's
+    # direct env does; workers' envs never do)
+    runs = [("direct", "direct", 1, True)]
+    if args.record_cost:
+        runs.append(("direct, unrecorded", "direct", 1, False))
+    else:
+        runs += [(f"{b} x{n}", b, n, False) for b in args.backends for n in args.workers]
     rows = {}
     for _ in range(args.repeats):  # rounds interleave the settings, so drifts hit all alike
-        for backend, n in runs:
-            name = "direct" if backend == "direct" else f"{backend} x{n}"
+        for name, backend, n, record in runs:
             fps = measure(
                 args.env,
                 backend,
                 n,
                 args.frames_per_batch - args.frames_per_batch % n,
                 args.batches,
+                record_episode=record,
             )
             rows[name] = max(rows.get(name, 0.0), fps)
     print(
@@ -97,9 +121,10 @@ def main(argv=None) -> dict:
         f"best of {args.repeats}"
     )
     for name, fps in rows.items():
-        print(f"  {name:<12}{fps:9.0f}   x{fps / rows['direct']:.2f} vs direct")
+        print(f"  {name:<20}{fps:9.0f}   x{fps / rows['direct']:.2f} vs direct")
     record = {**provenance("collection_throughput.py", argv), "env": args.env, "frames_per_s": rows}
-    Path(args.json).write_text(json.dumps(record, indent=2))
+    default = "episode_record_cost.json" if args.record_cost else "collection_throughput.json"
+    Path(args.json or ROOT / "benchmarks" / default).write_text(json.dumps(record, indent=2))
     return rows
 
 

@@ -294,8 +294,8 @@ class TestRecipe:
 
         made = []
 
-        def make_env(cfg, device):
-            env = original(cfg, device)
+        def make_env(cfg, device, **kwargs):
+            env = original(cfg, device, **kwargs)
             made.append(env)
             return TransformedEnv(env, NaNObservation()) if len(made) == 2 else env
 

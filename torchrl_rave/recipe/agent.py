@@ -42,6 +42,7 @@ from torchrl.objectives import (
 
 from torchrl_rave._checks import get_checked
 from torchrl_rave.envs.action_noise import ActuatorNoise
+from torchrl_rave.envs.episode_replay import EpisodeReplay
 from torchrl_rave.envs.families import import_env_family
 from torchrl_rave.modules import EpsilonGaussianModule, WorldModelEnsemble
 from torchrl_rave.objectives import (
@@ -298,12 +299,16 @@ def check_env(cfg: DictConfig) -> None:
     _check_spaces(cfg.env.name, env).close()
 
 
-def make_env(cfg: DictConfig, device: torch.device) -> TransformedEnv:
+def make_env(
+    cfg: DictConfig, device: torch.device, *, record_episode: bool = False
+) -> TransformedEnv:
     """The training (or evaluation) env: float32, step counter, episode return, reward
     scaling; with ``env.action_noise > 0`` its transitions are made stochastic by
     :class:`~torchrl_rave.envs.ActuatorNoise`. An env that names its reward terms
     (``reward_term_names``, e.g. ``LearnToMove-v0``) gets them as ``("next",
     "reward_terms", name)`` entries (:class:`~torchrl_rave.transforms.RewardTermsReader`).
+    ``record_episode`` wraps the gymnasium env in :class:`~torchrl_rave.envs.EpisodeReplay`
+    (outermost), so that a checkpoint can keep the episode in progress.
     Optional families (PyBullet ids) are registered first, here as in workers."""
     import gymnasium as gym
 
@@ -311,10 +316,14 @@ def make_env(cfg: DictConfig, device: torch.device) -> TransformedEnv:
     kwargs = dict(cfg.env.kwargs or {})
     noise = float(cfg.env.get("action_noise", 0.0))  # runs saved before the key: none
     with _named_kwargs_error(cfg.env.name, kwargs):
-        if noise > 0:
+        if noise > 0 or record_episode:
             raw = _check_spaces(cfg.env.name, gym.make(cfg.env.name, **kwargs))
-            base = GymWrapper(ActuatorNoise(raw, noise), device=device)
-        else:  # exactly the env of a run without the key
+            if noise > 0:
+                raw = ActuatorNoise(raw, noise)
+            if record_episode:
+                raw = EpisodeReplay(raw)
+            base = GymWrapper(raw, device=device)
+        else:  # an evaluation env, or one in a collector's worker process
             base = GymEnv(cfg.env.name, device=device, **kwargs)
             _check_spaces(cfg.env.name, base._env)
     try:

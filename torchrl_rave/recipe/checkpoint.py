@@ -489,6 +489,13 @@ class RunCheckpoint:
         Checkpoint(**{name: target}).load(path, components=[name])
         return target if isinstance(target, dict) else target.state
 
+    def read_optional(self, name: str, path: Path):
+        """:meth:`read` of a component that checkpoints written by an earlier torchrl-rave
+        lack (e.g. ``episode``): ``None`` when checkpoint ``path`` has none."""
+        if name not in Checkpoint.manifest(path)["components"]:
+            return None
+        return self.read(name, path)
+
     def _refuse_old_format(self) -> None:
         if (self.root / "latest").is_file():
             raise ValueError(

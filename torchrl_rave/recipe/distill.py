@@ -22,6 +22,7 @@ from torchrl.envs.utils import ExplorationType, set_exploration_type
 
 from torchrl_rave.recipe.agent import make_actor, make_agent, make_env, make_replay_buffer
 from torchrl_rave.recipe.checkpoint import RunCheckpoint, missing_checkpoint, saved_config
+from torchrl_rave.recipe.episode import EpisodeCheckpoint
 from torchrl_rave.recipe.schema import defaults
 
 __all__ = ["collect_pairs", "distill_actor", "distill_run"]
@@ -188,6 +189,7 @@ def distill_run(
         counters=counters,
         replay_buffer=rb,
         logger={},
+        episode=EpisodeCheckpoint(),  # none kept: the distilled policy starts new episodes
         **agent.state_components(),
     )
     result = {"source": str(run_dir), "frames": int(counters["frames"]), "pairs": len(observations),

@@ -26,11 +26,12 @@ import json
 import os
 import time
 from collections import defaultdict
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import torch
 from omegaconf import DictConfig, OmegaConf
+from torchrl.checkpoint import GlobalRNGState
 
 from torchrl_rave.recipe.agent import (
     Agent,
@@ -57,6 +58,7 @@ from torchrl_rave.recipe.config import (
     check_resumable,
     replay_buffer_size,
 )
+from torchrl_rave.recipe.episode import EpisodeCheckpoint, restore_or_restart
 from torchrl_rave.recipe.evaluate import evaluate_agent, make_logger
 from torchrl_rave.recipe.loop import batch_metrics, nothing_to_train, record_update
 from torchrl_rave.trainers import SeedStreams
@@ -115,6 +117,8 @@ class _Seed:
     checkpoint: RunCheckpoint
     logger: object = None
     collector: object = None
+    episode: EpisodeCheckpoint = field(default_factory=EpisodeCheckpoint)
+    rng_at_load: dict | None = None  # its stream as its checkpoint saved it
 
 
 def _seed_config(cfg: DictConfig, seed: int) -> DictConfig:
@@ -179,7 +183,8 @@ def train_group(cfg: DictConfig, run_dir: str) -> dict[str, float]:
     for i, seed in enumerate(cfg.seeds):
         one = _seed_config(cfg, int(seed))
         torch.manual_seed(one.env.seed)  # the single run's initialisation, seed by seed
-        env, eval_env = make_env(one, device), make_env(one, device)
+        env = make_env(one, device, record_episode=cfg.collector.backend == "direct")
+        eval_env = make_env(one, device)
         agent = make_agent(one, env, device)
         seed_dir = root / f"seed{seed}"
         seed_dir.mkdir(parents=True, exist_ok=True)
@@ -198,12 +203,14 @@ def train_group(cfg: DictConfig, run_dir: str) -> dict[str, float]:
         frame = _common_checkpoint(seeds)
         for i, s in enumerate(seeds):
             own = dict(counters)
+            path = s.checkpoint.root / f"{PREFIX}{frame:012d}"
             with rng.use(i):  # restores seed i's stream as its checkpoint saved it
                 s.checkpoint.load(
-                    path=s.checkpoint.root / f"{PREFIX}{frame:012d}",
-                    counters=own, replay_buffer=s.rb, logger=logger_states[i],
+                    path=path, counters=own, replay_buffer=s.rb, logger=logger_states[i],
                     **s.agent.state_components(),
                 )  # fmt: skip
+                s.rng_at_load = GlobalRNGState().state_dict()
+            s.episode.load_state_dict(s.checkpoint.read_optional("episode", path))
             if i == 0:
                 counters.update(own)
     for s, state in zip(seeds, logger_states, strict=True):
@@ -226,8 +233,16 @@ def train_group(cfg: DictConfig, run_dir: str) -> dict[str, float]:
                     counters=dict(counters),
                     replay_buffer=s.rb,
                     logger={} if s.logger is None else s.logger.state_dict(),
+                    episode=s.episode,
                     **s.agent.state_components(),
                 )
+
+    def save_after_failure():
+        # mid-batch (a hung or failed collector) or a dropped batch (NaN): the episodes
+        # no longer match the saved frames; a resumed group starts new ones
+        for s in seeds:
+            s.episode.attach(None, None)
+        return save_checkpoint()
 
     total = cfg.collector.total_frames
     last = [{} for _ in seeds]
@@ -243,8 +258,16 @@ def train_group(cfg: DictConfig, run_dir: str) -> dict[str, float]:
                 s.collector = make_collector(
                     s.cfg, s.env, s.agent.policy, device, counters["frames"]
                 )
+                s.episode.attach(s.env, s.collector)
+                if s.rng_at_load is not None:  # a resumed seed continues its episode
+                    if cfg.collector.backend == "direct":
+                        restore_or_restart(
+                            s.episode, s.env, s.collector, s.seed + counters["frames"]
+                        )
+                    GlobalRNGState().load_state_dict(s.rng_at_load)
+                    s.rng_at_load = None
         iterators = [
-            guarded_batches(s.collector, s.cfg, save_checkpoint, lambda: counters["frames"],
+            guarded_batches(s.collector, s.cfg, save_after_failure, lambda: counters["frames"],
                             str(s.dir))
             for s in collecting
         ]  # fmt: skip
@@ -255,7 +278,7 @@ def train_group(cfg: DictConfig, run_dir: str) -> dict[str, float]:
             for s, d in zip(seeds, data, strict=True):
                 bad = check_finite(d)
                 if bad is not None:
-                    where = stop_run(s.collector, save_checkpoint)
+                    where = stop_run(s.collector, save_after_failure)
                     raise NonFiniteEnvOutput(
                         f"{cfg.env.name} (seed {s.seed}) produced {bad} within frames "
                         f"{counters['frames']}-{counters['frames'] + d.numel()}; {where}: fix "

@@ -19,6 +19,7 @@ from pathlib import Path
 import torch
 import tqdm
 from omegaconf import DictConfig, OmegaConf
+from torchrl.checkpoint import GlobalRNGState
 from torchrl.data import ReplayBuffer
 
 from torchrl_rave.recipe.agent import (
@@ -53,6 +54,7 @@ from torchrl_rave.recipe.config import (
     resolve_config,
 )
 from torchrl_rave.recipe.curriculum import make_curriculum, stage_config
+from torchrl_rave.recipe.episode import EpisodeCheckpoint, restore_or_restart
 from torchrl_rave.recipe.evaluate import evaluate_agent, make_logger
 from torchrl_rave.recipe.reward import make_reward_relabelling, update_reward_weights
 from torchrl_rave.recipe.schema import default_config, defaults  # noqa: F401 (the example)
@@ -89,8 +91,10 @@ def _train(cfg: DictConfig, run_dir: str) -> dict[str, float]:
     apply_process_settings(cfg)
     torch.manual_seed(cfg.env.seed)
 
-    # Environments, agent, replay buffer
-    env, eval_env = make_env(cfg, device), make_env(cfg, device)
+    # Environments, agent, replay buffer; an in-process collector's env keeps its episode
+    # for the checkpoints
+    record = cfg.collector.backend == "direct"
+    env, eval_env = make_env(cfg, device, record_episode=record), make_env(cfg, device)
     agent = make_agent(cfg, env, device)
     rb = make_replay_buffer(cfg, device)
     relabel, delayed = make_reward_relabelling(cfg, env)
@@ -110,9 +114,12 @@ def _train(cfg: DictConfig, run_dir: str) -> dict[str, float]:
     counters = {"frames": 0, "updates": 0, "update_budget": 0.0, "curriculum_stage": 0}
     counters.update(next_eval=cfg.eval.interval, next_checkpoint=cfg.checkpoint.interval)
     logger_state: dict = {}
+    episode, rng_at_load = EpisodeCheckpoint(), None
     if cfg.resume:
         state = dict(counters=counters, replay_buffer=rb, logger=logger_state)
-        checkpoint.load(**state, **agent.state_components())
+        loaded = checkpoint.load(**state, **agent.state_components())
+        rng_at_load = GlobalRNGState().state_dict()
+        episode.load_state_dict(checkpoint.read_optional("episode", loaded))
     logger = make_logger(cfg, run_dir, logger_state or None)
     # A curriculum's envs carry its stage's setting; a resumed run continues its stage.
     curriculum, run_cfg = make_curriculum(cfg), cfg
@@ -122,8 +129,10 @@ def _train(cfg: DictConfig, run_dir: str) -> dict[str, float]:
         if curriculum.stage:
             env.close()
             eval_env.close()
-            env, eval_env = make_env(run_cfg, device), make_env(run_cfg, device)
-    # A resumed run restarts its episode; a new seed keeps it from replaying old ones.
+            env = make_env(run_cfg, device, record_episode=record)
+            eval_env = make_env(run_cfg, device)
+    # A resumed run continues the episode of its checkpoint where it can (below); where it
+    # cannot, a new seed keeps it from replaying old episodes.
     env.set_seed(cfg.env.seed + counters["frames"])
 
     def save_checkpoint():
@@ -133,8 +142,15 @@ def _train(cfg: DictConfig, run_dir: str) -> dict[str, float]:
             counters=counters,
             replay_buffer=rb,
             logger={} if logger is None else logger.state_dict(),
+            episode=episode,
             **agent.state_components(),
         )
+
+    def save_after_failure():
+        # mid-batch (a hung or failed collector) or a dropped batch (NaN): the episode
+        # no longer matches the saved frames; a resumed run starts a new one
+        episode.attach(None, None)
+        return save_checkpoint()
 
     # Main loop
     total = cfg.collector.total_frames
@@ -147,18 +163,26 @@ def _train(cfg: DictConfig, run_dir: str) -> dict[str, float]:
     with StopRequest() as stop, shutdown_on_error(lambda: collector):
         while counters["frames"] < total:  # again after each curriculum stage
             collector = make_collector(run_cfg, env, agent.policy, device, counters["frames"])
+            episode.attach(env, collector)
+            if rng_at_load is not None:  # the first collector of a resumed run
+                if record:
+                    restore_or_restart(episode, env, collector, cfg.env.seed + counters["frames"])
+                # as it was when the checkpoint was written, whatever building the
+                # collector drew
+                GlobalRNGState().load_state_dict(rng_at_load)
+                rng_at_load = None
             next_stage = False
             synced_at = counters["updates"]  # the workers start with the current weights
             t_collect = time.perf_counter()
             batches = guarded_batches(
-                collector, cfg, save_checkpoint, lambda: counters["frames"], run_dir
+                collector, cfg, save_after_failure, lambda: counters["frames"], run_dir
             )
             for batch in batches:
                 data = batch.reshape(-1)
                 collect_s = time.perf_counter() - t_collect
                 bad = check_finite(data)
                 if bad is not None:
-                    where = stop_run(collector, save_checkpoint)
+                    where = stop_run(collector, save_after_failure)
                     raise NonFiniteEnvOutput(
                         f"{cfg.env.name} produced {bad} within frames "
                         f"{counters['frames']}-{counters['frames'] + data.numel()}; the run "
@@ -207,6 +231,8 @@ def _train(cfg: DictConfig, run_dir: str) -> dict[str, float]:
                     if curriculum is not None and frames_now < total:
                         next_stage = curriculum.update(last_eval)
                         counters["curriculum_stage"] = curriculum.stage
+                        if next_stage:  # the next stage starts new episodes in new envs
+                            episode.attach(None, None)
                 if stage is not None:
                     metrics["train/curriculum_stage"] = stage
                 metrics.update(q_at_points(agent.loss, cfg.logger.q_points, cfg.env.reward_scale))
@@ -234,7 +260,8 @@ def _train(cfg: DictConfig, run_dir: str) -> dict[str, float]:
             run_cfg = stage_config(cfg, curriculum)
             env.close()
             eval_env.close()
-            env, eval_env = make_env(run_cfg, device), make_env(run_cfg, device)
+            env = make_env(run_cfg, device, record_episode=record)
+            eval_env = make_env(run_cfg, device)
             env.set_seed(cfg.env.seed + counters["frames"])
     pbar.close()
     if collector is not None:

@@ -1,0 +1,154 @@
+"""The training episode in progress as a checkpoint component, so that a resumed run
+continues the very episode it was in (``collector.backend=direct``).
+
+Two things carry an episode from one batch to the next: the env (its simulator, wrappers
+and random generators, rebuilt by :class:`~torchrl_rave.envs.EpisodeReplay`) and
+TorchRL's collector, which keeps the step it will act on next (the observation, the step
+count, the episode's return so far). :class:`EpisodeCheckpoint` saves both, and restores
+both into a new collector. Resumed this way, a run gives the numbers of the run that was
+never stopped.
+"""
+
+from __future__ import annotations
+
+import warnings
+
+import torch
+from tensordict import TensorDict
+from torchrl.collectors import Collector
+
+from torchrl_rave.envs.episode_replay import EpisodeReplay, EpisodeReplayError
+
+__all__ = ["EpisodeCheckpoint", "EpisodeNotRestored", "episode_recorder", "restore_or_restart"]
+
+
+class EpisodeNotRestored(UserWarning):
+    """A resumed run could not continue the episode its checkpoint was taken in, and
+    continues from a new episode instead."""
+
+
+def episode_recorder(env) -> EpisodeReplay | None:
+    """The :class:`~torchrl_rave.envs.EpisodeReplay` of a TorchRL env built by
+    :func:`~torchrl_rave.recipe.agent.make_env` with ``record_episode=True``, or ``None``."""
+    base = getattr(env, "base_env", env)
+    gym_env = getattr(base, "_env", None)
+    return gym_env if isinstance(gym_env, EpisodeReplay) else None
+
+
+def _carrier(collector) -> TensorDict | None:
+    # TorchRL's Collector keeps the next step to act on here; it has no public accessor
+    if not isinstance(collector, Collector):
+        return None
+    return getattr(collector, "_carrier", None)
+
+
+def _traj_pool_state(collector) -> torch.Tensor | None:
+    if not getattr(collector, "track_traj_ids", False):
+        return None
+    return collector._traj_pool.state_dict()["traj_id"]
+
+
+class EpisodeCheckpoint:
+    """The episode in progress of a run's training env and its collector, as a
+    checkpoint component (``state_dict``/``load_state_dict``, plain data and tensors).
+
+    :meth:`attach` names the env and collector whose episode :meth:`state_dict` saves;
+    ``attach(None, None)`` says that the run starts new episodes next (a curriculum's new
+    stage, in new envs), which a resumed run then does too.
+    :meth:`load_state_dict` keeps a saved episode until :meth:`restore` rebuilds it in
+    a new collector. An episode that cannot be saved (a worker-process or Ray collector,
+    whose envs live in other processes; an env without an ``EpisodeReplay``) is saved
+    as ``{"kept": False}``.
+    """
+
+    def __init__(self) -> None:
+        self.env = None
+        self.collector = None
+        self.saved: dict | None = None
+
+    def attach(self, env, collector) -> None:
+        self.env, self.collector = env, collector
+
+    def state_dict(self) -> dict:
+        if self.env is None and self.collector is None:  # detached: new episodes next
+            return {"kept": False, "new_episode": True}
+        recorder = episode_recorder(self.env)
+        carrier = _carrier(self.collector)
+        if recorder is None or carrier is None:
+            return {"kept": False, "why": "the collector's envs live in worker processes"}
+        episode = recorder.episode_state()
+        if episode is None:
+            return {"kept": False, "why": f"the episode was not recorded ({recorder.why_not})"}
+        keys = sorted(carrier.keys(include_nested=True, leaves_only=True), key=str)
+        return {
+            "kept": True,
+            "reset": episode["reset"],
+            "actions": torch.from_numpy(episode["actions"]),
+            "dtype": episode["dtype"],
+            "carrier_keys": [list(k) if isinstance(k, tuple) else [k] for k in keys],
+            "carrier_values": [carrier.get(k).detach().cpu().clone() for k in keys],
+            "traj_id": _traj_pool_state(self.collector),
+        }
+
+    def load_state_dict(self, state: dict) -> None:
+        self.saved = state
+
+    def restore(self, env, collector) -> str | None:
+        """Rebuilds the saved episode in ``env`` and hands ``collector`` its next step;
+        returns ``None`` when it did, or why it could not (then ``env`` and
+        ``collector`` must be reset: the caller does). Uses the saved episode once."""
+        saved, self.saved = self.saved, None
+        if saved is None:
+            return "its checkpoint holds no episode (written before episodes were kept)"
+        if not saved.get("kept"):
+            return f"its checkpoint holds no episode: {saved.get('why', 'not kept')}"
+        recorder, carrier = episode_recorder(env), _carrier(collector)
+        if recorder is None or carrier is None:
+            return "this env or collector cannot take an episode back"
+        keys = [tuple(k) if len(k) > 1 else k[0] for k in saved["carrier_keys"]]
+        # a new collector's step holds what a reset gives; the saved one also what the
+        # policy wrote into it at the last step (overwritten at the next, but kept as is)
+        missing = set(carrier.keys(include_nested=True, leaves_only=True)) - set(keys)
+        if missing:
+            return f"the checkpoint's collector step lacks {sorted(map(str, missing))}"
+        state = {"reset": saved["reset"], "actions": saved["actions"].numpy(),
+                 "dtype": saved["dtype"]}  # fmt: skip
+        try:
+            obs = recorder.replay(state)
+        except EpisodeReplayError as err:
+            return str(err)
+        target = dict(zip(keys, saved["carrier_values"], strict=True))
+        observation = target.get("observation")
+        if observation is not None:
+            replayed = torch.as_tensor(obs).to(observation.dtype).reshape(observation.shape)
+            if not torch.equal(replayed, observation):
+                return "the replayed episode does not end at the checkpoint's observation"
+        for key, value in target.items():
+            now = carrier.get(key, None)
+            carrier.set(key, value.to(now.device if now is not None else carrier.device or "cpu"))
+        if saved.get("traj_id") is not None and getattr(collector, "track_traj_ids", False):
+            # the next trajectory's id, as the collector that was stopped would give it
+            collector._traj_pool.load_state_dict({"traj_id": saved["traj_id"]})
+        return None
+
+
+def restore_or_restart(episode: EpisodeCheckpoint, env, collector, seed: int) -> bool:
+    """Continues the episode of the checkpoint just loaded into ``episode``; where it
+    cannot (:class:`EpisodeNotRestored` says why), or where the run was about to start
+    new episodes anyway, reseeds ``env`` with ``seed`` and starts a new episode. Returns
+    whether the episode was continued."""
+    planned = bool(episode.saved and episode.saved.get("new_episode"))
+    why = None if planned else episode.restore(env, collector)
+    if why is None and not planned:
+        return True
+    episode.saved = None
+    if not planned:
+        warnings.warn(
+            f"the resumed run starts a new episode: the episode its checkpoint was taken "
+            f"in could not be continued ({why})",
+            EpisodeNotRestored,
+            stacklevel=2,
+        )
+    env.set_seed(seed)
+    collector.reset()
+    return False
