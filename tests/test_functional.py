@@ -199,3 +199,64 @@ class TestRollout:
         torch.testing.assert_close(states[0, 0, :, 0], torch.tensor([0.0, 2.0, 4.0]))
         torch.testing.assert_close(states[1, 0, :, 0], torch.tensor([0.0, 3.0, 6.0]))
         assert actions.shape == (2, 3, 3, 1)
+
+
+class TestLayouts:
+    """Inputs off the documented layouts are named, not broadcast. TorchRL's ``[B, 1]``
+    reward and done entries broadcast without an error where sizes happen to match: with
+    ``B = K = 5``, ``[5, 1]`` rewards gave candidates of the right shape in which critic
+    ``k``'s row held sample ``k``'s reward, and with ``B = Ni = 2`` ``[2, 1]`` termination
+    flags cut member ``i``'s rollouts by sample ``i``'s flag."""
+
+    def layout(self, Ni=2, Nj=3, K=5, B=5, H=3):
+        return (torch.zeros(B), torch.zeros(Ni, Nj, B, H), torch.ones(Ni, K, B, H + 1),
+                torch.ones(Ni, B, H + 1))  # fmt: skip
+
+    def test_a_torchrl_shaped_reward_is_named(self):
+        reward, rewards, values, cont = self.layout()
+        assert VF.candidate_targets(reward, rewards, values, cont, 0.9).shape == (2, 3, 5, 5, 4)
+        with pytest.raises(ValueError, match=r"reward has shape \[5, 1\], expected \[5\]"):
+            VF.candidate_targets(reward[:, None], rewards, values, cont, 0.9)
+
+    @pytest.mark.parametrize(
+        "which, bad, message",
+        [
+            ("values", torch.ones(2, 5, 5, 3), r"values has shape \[2, 5, 5, 3\], expected \[Ni"),
+            ("values", torch.ones(3, 5, 5, 4), r"values has shape \[3, 5, 5, 4\]"),
+            ("cont", torch.ones(2, 5, 3), r"continuation has shape \[2, 5, 3\], expected \[2, 5, 4\]"),
+            ("rewards", torch.zeros(2, 3), r"imagined_rewards has shape \[2, 3\]"),
+        ],
+    )  # fmt: skip
+    def test_other_layouts_are_named(self, which, bad, message):
+        inputs = dict(zip(("reward", "rewards", "values", "cont"), self.layout(), strict=True))
+        inputs[which] = bad
+        with pytest.raises(ValueError, match=message):
+            VF.candidate_targets(*inputs.values(), 0.9)
+
+    def test_termination_flags_and_probabilities(self):
+        probs = torch.full((2, 5, 3), 0.5)
+        assert VF.continuation_weights(torch.zeros(5), probs).shape == (2, 5, 4)
+        with pytest.raises(ValueError, match=r"terminated has shape \[5, 1\], expected \[5\]"):
+            VF.continuation_weights(torch.zeros(5, 1), probs)
+
+    def test_moments_alpha_and_horizon(self):
+        mean, var = torch.zeros(5, 4), torch.ones(5, 4)
+        with pytest.raises(ValueError, match=r"ensemble_dims=4 must lie in \[1, 3\]"):
+            VF.horizon_moments(torch.zeros(2, 2, 5, 4), ensemble_dims=4)
+        with pytest.raises(ValueError, match=r"alpha has shape \[5, 1\], expected \[5\]"):
+            VF.confidence_lower_bound(mean, var, torch.ones(5, 1))
+        with pytest.raises(ValueError, match=r"var has shape \[5, 3\]"):
+            VF.expansion_target(mean, var[:, :3], mix="inverse_variance")
+        # H_max = 3: horizon 5 was torch's IndexError, -1 the last horizon silently
+        for horizon in (5, -1, 1.5):
+            with pytest.raises(
+                ValueError, match=rf"horizon={horizon} must be an integer in \[0, 3\]"
+            ):
+                VF.expansion_target(mean, var, mix="fixed", horizon=horizon)
+        assert VF.expansion_target(mean, var, mix="fixed", horizon=3)[1][0].tolist() == [0, 0, 0, 1]
+
+    def test_rollout_arguments(self):
+        with pytest.raises(ValueError, match="horizon=-1 must be an integer >= 0"):
+            VF.imagined_rollout(torch.zeros(3, 1), lambda s: s, lambda s, a, m: s, 2, -1)
+        with pytest.raises(ValueError, match="num_members=0 must be an integer >= 1"):
+            VF.imagined_rollout(torch.zeros(3, 1), lambda s: s, lambda s, a, m: s, 0, 2)

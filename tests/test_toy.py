@@ -58,6 +58,11 @@ class TestToyEnv:
         for _ in range(6):
             obs, r, term, _, _ = env.step(np.array([-1.0], dtype=np.float32))
         assert obs.item() == -6.0 and term
+        # a step past the end paid the final reward again, and again
+        with pytest.raises(RuntimeError, match=r"after the episode ended \(\|s\| = 6 > bound 5\)"):
+            env.step(np.array([-1.0], dtype=np.float32))
+        env.reset()
+        assert env.step(np.array([1.0], dtype=np.float32))[0].item() == 1.0
 
     def test_stochastic_step_moments(self):
         env = ToyEnv(k=1.0)

@@ -65,10 +65,12 @@ class ToyEnv(gym.Env):
         self.action_space = spaces.Box(-1.0, 1.0, shape=(1,), dtype=np.float32)
         self.observation_space = spaces.Box(-np.inf, np.inf, shape=(1,), dtype=np.float32)
         self._s = 0.0
+        self._ended = False
 
     def reset(self, *, seed: int | None = None, options: dict | None = None):
         super().reset(seed=seed)
         self._s = 0.0
+        self._ended = False
         return np.array([self._s], dtype=np.float32), {}
 
     def step(self, action):
@@ -78,9 +80,15 @@ class ToyEnv(gym.Env):
         a = float(flat[0])
         if not math.isfinite(a):
             raise ValueError(f"action must be finite, got {a!r}")
+        if self._ended:  # it would pay the final reward again on every step
+            raise RuntimeError(
+                f"ToyEnv.step after the episode ended (|s| = {abs(self._s):g} > bound "
+                f"{self.bound:g}): call reset() first"
+            )
         noise = self.k * self.np_random.standard_normal() if self.k > 0 else 0.0
         self._s = self._s + float(np.sign(a)) + noise
         terminated = abs(self._s) > self.bound
+        self._ended = terminated
         reward = -self.step_penalty + (self.final_reward if terminated else 0.0)
         return np.array([self._s], dtype=np.float32), reward, terminated, False, {}
 

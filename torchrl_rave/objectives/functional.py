@@ -13,6 +13,10 @@ termination models), reward members ``j``, target critics ``k``, horizon
 
 Nothing here calls a network: the estimator computes the O(N H) transition, O(N^2 H)
 reward and O(N K H) critic evaluations and these functions combine them by broadcasting.
+Each function checks that its inputs have these layouts, and names the one that does not
+(``ValueError``): TorchRL's own ``[*B, 1]`` reward and done entries would otherwise
+broadcast, where sizes happen to match, into candidates of the right shape and the wrong
+values.
 """
 
 from __future__ import annotations
@@ -35,6 +39,31 @@ __all__ = [
     "expansion_target",
     "adaptive_alpha",
 ]
+
+
+def _expect(fn: str, name: str, tensor: torch.Tensor, shape, layout: str) -> None:
+    if tuple(tensor.shape) != tuple(shape):
+        raise ValueError(
+            f"{fn}: {name} has shape {list(tensor.shape)}, expected {list(shape)} ({layout})"
+        )
+
+
+def _horizon_layout(fn: str, imagined_rewards: torch.Tensor, continuation: torch.Tensor):
+    """``(Ni, B, H_max)`` of ``imagined_rewards [Ni, Nj, *B, H_max]``, with
+    ``continuation`` checked against them."""
+    if imagined_rewards.dim() < 3:
+        raise ValueError(
+            f"{fn}: imagined_rewards has shape {list(imagined_rewards.shape)}, expected "
+            "[Ni, Nj, *B, H_max]"
+        )
+    Ni, B, H = (
+        imagined_rewards.shape[0],
+        tuple(imagined_rewards.shape[2:-1]),
+        imagined_rewards.shape[-1],
+    )
+    _expect(fn, "continuation", continuation, (Ni, *B, H + 1),
+            f"[Ni, *B, H_max + 1] with Ni={Ni}, B={list(B)}, H_max={H} from imagined_rewards")  # fmt: skip
+    return Ni, B, H
 
 
 def imagined_rollout(
@@ -68,6 +97,10 @@ def imagined_rollout(
         >>> states[0, 0, :, 0]
         tensor([0., 1., 2.])
     """
+    if isinstance(horizon, bool) or int(horizon) != horizon or horizon < 0:
+        raise ValueError(f"imagined_rollout: horizon={horizon!r} must be an integer >= 0")
+    if isinstance(num_members, bool) or int(num_members) != num_members or num_members < 1:
+        raise ValueError(f"imagined_rollout: num_members={num_members!r} must be an integer >= 1")
     action = policy(obs)
     states = [obs.expand(num_members, *obs.shape)]
     actions = [action.expand(num_members, *action.shape)]
@@ -99,6 +132,13 @@ def continuation_weights(terminated: torch.Tensor, termination_prob: torch.Tenso
         tensor([[[1.0000, 0.5000, 0.2500],
                  [0.0000, 0.0000, 0.0000]]])
     """
+    if termination_prob.dim() < 2:
+        raise ValueError(
+            f"continuation_weights: termination_prob has shape {list(termination_prob.shape)}, "
+            "expected [Ni, *B, H_max]"
+        )
+    _expect("continuation_weights", "terminated", terminated, termination_prob.shape[1:-1],
+            "[*B], the batch of termination_prob [Ni, *B, H_max]")  # fmt: skip
     first = (1.0 - terminated.to(termination_prob.dtype)).expand(termination_prob.shape[:-1])
     later = torch.cumprod(1.0 - termination_prob, dim=-1) * first.unsqueeze(-1)
     return torch.cat([first.unsqueeze(-1), later], -1)
@@ -123,7 +163,7 @@ def discounted_reward_sums(
     Returns:
         ``[Ni, Nj, *B, H_max + 1]``, entry 0 is zero.
     """
-    H = imagined_rewards.shape[-1]
+    H = _horizon_layout("discounted_reward_sums", imagined_rewards, continuation)[2]
     terms = imagined_rewards * (
         _gamma_powers(gamma, H, imagined_rewards) * continuation[..., :H]
     ).unsqueeze(1)
@@ -159,6 +199,18 @@ def candidate_targets(
         >>> T.shape, T[0, 0, 0, 0]
         (torch.Size([4, 4, 2, 5, 4]), tensor([0.5000, 0.2500, 0.1250, 0.0625]))
     """
+    fn = "candidate_targets"
+    Ni, B, H = _horizon_layout(fn, imagined_rewards, continuation)
+    _expect(fn, "reward", reward, B, f"[*B] with B={list(B)} from imagined_rewards")
+    if (
+        values.dim() != len(B) + 3
+        or values.shape[0] != Ni
+        or tuple(values.shape[2:]) != (*B, H + 1)
+    ):
+        raise ValueError(
+            f"{fn}: values has shape {list(values.shape)}, expected [Ni, K, *B, H_max + 1] "
+            f"with Ni={Ni}, B={list(B)}, H_max={H} from imagined_rewards"
+        )
     H1 = values.shape[-1]
     reward_sums = discounted_reward_sums(imagined_rewards, continuation, gamma)  # [Ni, Nj, *B, H+1]
     bootstrap = (_gamma_powers(gamma, H1, values) * continuation).unsqueeze(
@@ -179,6 +231,11 @@ def horizon_moments(
     Returns:
         ``(mean, var)``, each ``[*B, H_max + 1]``.
     """
+    if not 1 <= ensemble_dims < candidates.dim():
+        raise ValueError(
+            f"horizon_moments: ensemble_dims={ensemble_dims!r} must lie in [1, "
+            f"{candidates.dim() - 1}] for candidates of shape {list(candidates.shape)}"
+        )
     dims = tuple(range(ensemble_dims))
     var, mean = torch.var_mean(candidates, dim=dims, correction=0)
     return mean, var
@@ -202,7 +259,10 @@ def confidence_lower_bound(
 
     ``alpha`` is a scalar or per-sample ``[*B]`` (broadcast over horizons).
     """
+    _expect("confidence_lower_bound", "var", var, mean.shape, "[*B, H_max + 1], as mean")
     if isinstance(alpha, torch.Tensor) and alpha.dim() > 0:
+        _expect("confidence_lower_bound", "alpha", alpha, mean.shape[:-1],
+                "a scalar or [*B], the batch of mean [*B, H_max + 1]")  # fmt: skip
         alpha = alpha.unsqueeze(-1)
     return mean - alpha * var.sqrt()
 
@@ -244,6 +304,11 @@ def expansion_target(
         weights = inverse_variance_weights(var, eps)
     elif mix == "fixed":
         H = mean.shape[-1] - 1 if horizon is None else horizon
+        if isinstance(H, bool) or int(H) != H or not 0 <= H < mean.shape[-1]:
+            raise ValueError(
+                f"expansion_target: horizon={horizon!r} must be an integer in [0, "
+                f"{mean.shape[-1] - 1}] (H_max = {mean.shape[-1] - 1} here)"
+            )
         weights = torch.zeros_like(mean)
         weights[..., H] = 1.0
     else:
