@@ -14,12 +14,16 @@ import warnings
 import gymnasium as gym
 import numpy as np
 import pytest
+import torch
 from test_recipe import RECIPES, TINY, make_cfg
 from test_seed_group_recipe import scalars
+from torchrl.envs.utils import RandomPolicy
 
 from torchrl_rave.envs import ActuatorNoise, EpisodeReplay, EpisodeReplayError, import_env_family
+from torchrl_rave.recipe.agent import make_env
 from torchrl_rave.recipe.checkpoint import RunCheckpoint
-from torchrl_rave.recipe.episode import EpisodeNotRestored
+from torchrl_rave.recipe.collect import make_collector
+from torchrl_rave.recipe.episode import EpisodeCheckpoint, EpisodeNotRestored
 from torchrl_rave.recipe.loop import train
 
 
@@ -229,3 +233,28 @@ def test_a_checkpoint_without_an_episode_resumes_at_a_new_one(tmp_path, monkeypa
     with pytest.warns(EpisodeNotRestored, match="written before episodes were kept"):
         out = train(make_cfg(*TINY, "algorithm=ddpg", f"resume={tmp_path}"), "unused")
     assert out["frames"] == 400
+
+
+def test_reset_options_from_a_run_directory_reach_no_env(tmp_path, monkeypatch):
+    """A run directory comes from anyone; the recipe resets its envs without options, so a
+    saved episode that names some (a string an env might open as a file) is not replayed."""
+    cfg = make_cfg(*TINY, "algorithm=ddpg")
+    env = make_env(cfg, torch.device("cpu"), record_episode=True)
+    collector = make_collector(cfg, env, RandomPolicy(env.action_spec), torch.device("cpu"))
+    episode = EpisodeCheckpoint()
+    episode.attach(env, collector)
+    next(iter(collector))
+    state = episode.state_dict()
+    assert state["kept"] and state["reset"]["options"] is None
+    replayed = []
+    replay = EpisodeReplay.replay
+    monkeypatch.setattr(
+        EpisodeReplay, "replay", lambda self, s: replayed.append(s) or replay(self, s)
+    )
+    tampered = {**state, "reset": {**state["reset"], "options": {"model": str(tmp_path)}}}
+    episode.load_state_dict(tampered)
+    assert "reset options" in episode.restore(env, collector)
+    assert replayed == []
+    episode.load_state_dict(state)
+    assert episode.restore(env, collector) is None and len(replayed) == 1
+    collector.shutdown()

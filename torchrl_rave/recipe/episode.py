@@ -105,6 +105,10 @@ class EpisodeCheckpoint:
         recorder, carrier = episode_recorder(env), _carrier(collector)
         if recorder is None or carrier is None:
             return "this env or collector cannot take an episode back"
+        if saved["reset"].get("options") is not None:
+            # the recipe resets without options; a run directory's values are not handed
+            # to the env, which may open them as files (recipe.trust)
+            return "its episode began with reset options, which the recipe never passes"
         keys = [tuple(k) if len(k) > 1 else k[0] for k in saved["carrier_keys"]]
         # a new collector's step holds what a reset gives; the saved one also what the
         # policy wrote into it at the last step (overwritten at the next, but kept as is)
