@@ -120,6 +120,16 @@ def test_what_cannot_be_replayed_is_named():
     fresh.reset()
     with pytest.raises(EpisodeReplayError, match="not those of the recorded"):
         EpisodeReplay(gym.make("Hopper-v5")).replay(fresh.episode_state())
+    # what no recording holds
+    for key, value, message in [
+        ("dtype", "O", "actions of dtype object"),
+        ("reset", {**state["reset"], "seed": "0"}, "seed '0'"),
+        ("reset", {**state["reset"], "generators": {"0._rng": {"bit_generator": "PCG64"}}},
+         "generator 0._rng: unusable recorded state"),
+        ("actions", "many", "not a recorded episode"),
+    ]:  # fmt: skip
+        with pytest.raises(EpisodeReplayError, match=message):
+            EpisodeReplay(ActuatorNoise(gym.make("Hopper-v5"), 0.3)).replay({**state, key: value})
     # an env that is not deterministic given its generators: its episode ends early
     first = EpisodeReplay(Moody())
     first.reset(seed=0)
@@ -254,6 +264,17 @@ def test_reset_options_from_a_run_directory_reach_no_env(tmp_path, monkeypatch):
     tampered = {**state, "reset": {**state["reset"], "options": {"model": str(tmp_path)}}}
     episode.load_state_dict(tampered)
     assert "reset options" in episode.restore(env, collector)
+    # and a record no checkpoint holds is named, not replayed
+    at = [k[-1] for k in state["carrier_keys"]].index("observation")
+    values = list(state["carrier_values"])
+    values[at] = values[at][:2]
+    for bad, message in [
+        ({"carrier_values": state["carrier_values"][1:]}, "unusable"),
+        ({"carrier_values": values}, "holds another 'observation'"),
+        ({"reset": {"seed": 0}}, "unusable"),
+    ]:
+        episode.load_state_dict({**state, **bad})
+        assert message in episode.restore(env, collector)
     assert replayed == []
     episode.load_state_dict(state)
     assert episode.restore(env, collector) is None and len(replayed) == 1

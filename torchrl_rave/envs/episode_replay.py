@@ -132,15 +132,39 @@ class EpisodeReplay(gym.Wrapper):
         actions. Returns the last observation. Raises :class:`EpisodeReplayError` when
         the actions or the env's generators are not the recording's, or the episode
         ended before its last recorded action."""
-        reset = state["reset"]
-        actions = np.asarray(state["actions"]).astype(np.dtype(state["dtype"]))
+        try:
+            reset, seed, saved = (
+                state["reset"],
+                state["reset"]["seed"],
+                state["reset"]["generators"],
+            )
+            dtype = np.dtype(state["dtype"])
+            actions = np.asarray(state["actions"], dtype=np.float64)
+        except (KeyError, TypeError, ValueError) as err:
+            raise EpisodeReplayError(
+                f"not a recorded episode ({type(err).__name__}: {err})"
+            ) from None
+        if (
+            dtype.kind != "f"
+            or not (seed is None or type(seed) is int)
+            or not isinstance(saved, dict)
+        ):
+            raise EpisodeReplayError(
+                f"not a recorded episode: actions of dtype {dtype}, seed {seed!r}, generators "
+                f"of type {type(saved).__name__}"
+            )
+        if len(actions) > self.max_steps:
+            raise EpisodeReplayError(
+                f"the recorded episode has {len(actions)} steps, more than max_steps="
+                f"{self.max_steps} (no recording keeps more)"
+            )
+        actions = actions.astype(dtype)
         shape = self.action_space.shape or ()
         if actions.shape[1:] != shape:
             raise EpisodeReplayError(
                 f"the recorded actions have shape {actions.shape[1:]}, this env's "
                 f"{shape}: another env recorded them"
             )
-        saved = reset["generators"]
         generators = dict(_generators(self.env))
         if not set(saved) <= set(generators):  # created by its first reset
             self.env.reset()
@@ -149,17 +173,22 @@ class EpisodeReplay(gym.Wrapper):
             raise self._other_generators(generators, saved)
         for name, value in saved.items():
             kind = type(generators[name].bit_generator).__name__
-            if value.get("bit_generator") != kind:
+            recorded = value.get("bit_generator") if isinstance(value, dict) else value
+            if recorded != kind:
                 raise EpisodeReplayError(
-                    f"generator {name} is a {kind}, the recorded episode's a "
-                    f"{value.get('bit_generator')}"
+                    f"generator {name} is a {kind}, the recorded episode's a {recorded!r}"
                 )
-            generators[name].bit_generator.state = value
-        obs, _ = self.reset(seed=reset["seed"], options=reset["options"])
+            try:
+                generators[name].bit_generator.state = value
+            except (KeyError, TypeError, ValueError) as err:
+                raise EpisodeReplayError(
+                    f"generator {name}: unusable recorded state ({err})"
+                ) from None
+        obs, _ = self.reset(seed=seed, options=reset.get("options"))
         # a generator the recording did not have is made by the reset: from its seed, or,
         # unseeded, from fresh entropy, and then the episode cannot be rebuilt
         generators = dict(_generators(self.env))
-        if reset["seed"] is None and set(generators) != set(saved):
+        if seed is None and set(generators) != set(saved):
             raise self._other_generators(generators, saved)
         for i, action in enumerate(actions):
             obs, _, terminated, truncated, _ = self.step(action)

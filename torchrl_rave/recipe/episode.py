@@ -105,31 +105,43 @@ class EpisodeCheckpoint:
         recorder, carrier = episode_recorder(env), _carrier(collector)
         if recorder is None or carrier is None:
             return "this env or collector cannot take an episode back"
-        if saved["reset"].get("options") is not None:
+        try:
+            options = saved["reset"]["options"]
+            keys = [tuple(k) if len(k) > 1 else k[0] for k in saved["carrier_keys"]]
+            target = dict(zip(keys, saved["carrier_values"], strict=True))
+            state = {"reset": saved["reset"], "actions": saved["actions"].numpy(),
+                     "dtype": saved["dtype"]}  # fmt: skip
+        except (AttributeError, KeyError, TypeError, ValueError) as err:
+            return f"its episode record is unusable ({type(err).__name__}: {err})"
+        if options is not None:
             # the recipe resets without options; a run directory's values are not handed
             # to the env, which may open them as files (recipe.trust)
             return "its episode began with reset options, which the recipe never passes"
-        keys = [tuple(k) if len(k) > 1 else k[0] for k in saved["carrier_keys"]]
+        if not all(isinstance(v, torch.Tensor) for v in target.values()):
+            return "its episode record is unusable (a collector entry is not a tensor)"
         # a new collector's step holds what a reset gives; the saved one also what the
         # policy wrote into it at the last step (overwritten at the next, but kept as is)
-        missing = set(carrier.keys(include_nested=True, leaves_only=True)) - set(keys)
+        now = carrier.keys(include_nested=True, leaves_only=True)
+        missing = set(now) - set(keys)
         if missing:
             return f"the checkpoint's collector step lacks {sorted(map(str, missing))}"
-        state = {"reset": saved["reset"], "actions": saved["actions"].numpy(),
-                 "dtype": saved["dtype"]}  # fmt: skip
+        for key in now:
+            value, current = target[key], carrier.get(key)
+            if (value.shape, value.dtype) != (current.shape, current.dtype):
+                return f"the checkpoint's collector step holds another {key!r}"
         try:
             obs = recorder.replay(state)
         except EpisodeReplayError as err:
             return str(err)
-        target = dict(zip(keys, saved["carrier_values"], strict=True))
         observation = target.get("observation")
         if observation is not None:
             replayed = torch.as_tensor(obs).to(observation.dtype).reshape(observation.shape)
             if not torch.equal(replayed, observation):
                 return "the replayed episode does not end at the checkpoint's observation"
         for key, value in target.items():
-            now = carrier.get(key, None)
-            carrier.set(key, value.to(now.device if now is not None else carrier.device or "cpu"))
+            current = carrier.get(key, None)
+            device = current.device if current is not None else carrier.device or "cpu"
+            carrier.set(key, value.to(device))
         if saved.get("traj_id") is not None and getattr(collector, "track_traj_ids", False):
             # the next trajectory's id, as the collector that was stopped would give it
             collector._traj_pool.load_state_dict({"traj_id": saved["traj_id"]})
