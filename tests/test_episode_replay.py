@@ -4,18 +4,13 @@ never stopped."""
 
 from __future__ import annotations
 
-import os
-import signal
-import subprocess
-import sys
-import time
 import warnings
 
 import gymnasium as gym
 import numpy as np
 import pytest
 import torch
-from test_recipe import RECIPES, TINY, make_cfg
+from test_recipe import TINY, kill_after_first_checkpoint, make_cfg
 from test_seed_group_recipe import scalars
 from torchrl.envs.utils import RandomPolicy
 
@@ -196,22 +191,9 @@ def test_a_run_killed_mid_episode_resumes_as_if_never_stopped(group, tmp_path):
     whole = tmp_path / "whole"
     train(make_cfg(*overrides), str(whole))
     killed = tmp_path / "killed"
-    proc = subprocess.Popen(
-        [sys.executable, str(RECIPES / "rave_mujoco.py"), *overrides, f"hydra.run.dir={killed}"],
-        stdout=subprocess.DEVNULL,
-        stderr=subprocess.DEVNULL,
-    )
-    checkpoints = [RunCheckpoint(killed / run) for run in runs]
-    deadline = time.time() + 240
-    while checkpoints[-1].latest() is None and proc.poll() is None and time.time() < deadline:
-        time.sleep(0.1)
-    os.kill(proc.pid, signal.SIGKILL)
-    proc.wait()
-    firsts = [c.latest() for c in checkpoints]
-    assert None not in firsts, "the run died before its first checkpoint"
-    frames = min(c.read("counters", p)["frames"] for c, p in zip(checkpoints, firsts, strict=True))
+    frames = kill_after_first_checkpoint(overrides, killed, runs)
     assert frames in (300, 600)
-    for c in checkpoints:
+    for c in (RunCheckpoint(killed / run) for run in runs):
         episode = c.read("episode", c.root / f"checkpoint-{frames:012d}")
         assert episode["kept"] and len(episode["actions"]) == frames % 400
     with warnings.catch_warnings():

@@ -59,6 +59,27 @@ TINY = [
 ]
 
 
+def kill_after_first_checkpoint(overrides: list[str], run_dir: Path, runs=("",)) -> int:
+    """Starts the recipe with ``overrides`` into ``run_dir`` in a process of its own,
+    SIGKILLs it as soon as each of ``runs`` (a seed group's ``seed<s>``) has a checkpoint,
+    and returns the newest frame all of them have a checkpoint of."""
+    proc = subprocess.Popen(
+        [sys.executable, str(RECIPES / "rave_mujoco.py"), *overrides, f"hydra.run.dir={run_dir}"],
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+    )
+    checkpoints = [RunCheckpoint(run_dir / run) for run in runs]
+    deadline = time.time() + 240
+    while (any(c.latest() is None for c in checkpoints) and proc.poll() is None
+           and time.time() < deadline):  # fmt: skip
+        time.sleep(0.1)
+    os.kill(proc.pid, signal.SIGKILL)
+    proc.wait()
+    firsts = [c.latest() for c in checkpoints]
+    assert None not in firsts, "the run died before its first checkpoint"
+    return min(c.read("counters", p)["frames"] for c, p in zip(checkpoints, firsts, strict=True))
+
+
 def make_cfg(*overrides: str):
     with initialize_config_dir(config_dir=str(RECIPES), version_base="1.3"):
         return compose("config", overrides=list(overrides))
@@ -304,22 +325,10 @@ class TestCheckpoints:
             "checkpoint.interval=300",
             "eval.interval=3000",
         ]
-        script = RECIPES / "rave_mujoco.py"
-        proc = subprocess.Popen(
-            [sys.executable, str(script), *overrides, f"hydra.run.dir={tmp_path}"],
-            stdout=subprocess.DEVNULL,
-            stderr=subprocess.DEVNULL,
-        )
+        f0 = kill_after_first_checkpoint(overrides, tmp_path)
         checkpointer = RunCheckpoint(tmp_path)
-        deadline = time.time() + 240
-        while checkpointer.latest() is None and proc.poll() is None and time.time() < deadline:
-            time.sleep(0.2)
-        os.kill(proc.pid, signal.SIGKILL)
-        proc.wait()
-        first = checkpointer.latest()
-        assert first is not None, "the run died before writing its first checkpoint"
+        first = checkpointer.root / f"checkpoint-{f0:012d}"
         saved_counters = checkpointer.read("counters", first)
-        f0 = saved_counters["frames"]
         assert f0 % 300 == 0 and 300 <= f0 < 3000
         cfg = make_cfg(*overrides)
         saved_rb = make_replay_buffer(cfg, "cpu")

@@ -4,16 +4,11 @@ single run, and a killed group resumes."""
 from __future__ import annotations
 
 import csv
-import os
-import signal
-import subprocess
-import sys
-import time
 from pathlib import Path
 
 import pytest
 import torch
-from test_recipe import RECIPES, TINY, make_cfg, undocumented_metrics
+from test_recipe import TINY, kill_after_first_checkpoint, make_cfg, undocumented_metrics
 
 from torchrl_rave.recipe.agent import load_policy, make_replay_buffer
 from torchrl_rave.recipe.checkpoint import RunCheckpoint
@@ -124,21 +119,8 @@ def test_kill_and_resume_continues_every_seed(tmp_path):
     carried on (its step count, and moments that differ between the seeds)."""
     overrides = [*PENDULUM, "algorithm=rave", "seeds=[0,1]", "collector.total_frames=1200",
                  "checkpoint.interval=300", "eval.interval=1200"]  # fmt: skip
-    proc = subprocess.Popen(
-        [sys.executable, str(RECIPES / "rave_mujoco.py"), *overrides, f"hydra.run.dir={tmp_path}"],
-        stdout=subprocess.DEVNULL,
-        stderr=subprocess.DEVNULL,
-    )
+    f0 = kill_after_first_checkpoint(overrides, tmp_path, ("seed0", "seed1"))
     checkpoints = [RunCheckpoint(tmp_path / f"seed{s}") for s in (0, 1)]
-    deadline = time.time() + 240
-    while (checkpoints[1].latest() is None and proc.poll() is None
-           and time.time() < deadline):  # fmt: skip
-        time.sleep(0.2)
-    os.kill(proc.pid, signal.SIGKILL)
-    proc.wait()
-    firsts = [c.latest() for c in checkpoints]
-    assert None not in firsts, "the group died before its first checkpoints"
-    f0 = min(c.read("counters", p)["frames"] for c, p in zip(checkpoints, firsts, strict=True))
     assert f0 % 300 == 0 and 300 <= f0 < 1200
     cfg = make_cfg(*overrides)
     saved = []
