@@ -309,6 +309,8 @@ class TestCheckpoints:
                                        "env.kwargs={after:3}", "algorithm=ddpg"), str(tmp_path))  # fmt: skip
         checkpoint = RunCheckpoint(tmp_path)
         assert checkpoint.read("counters")["frames"] == 0
+        # the dropped batch's steps are in no replay buffer: a resume starts a new episode
+        assert checkpoint.read("episode") == {"kept": False, "new_episode": True}
         names = [p.name for p in (tmp_path / "checkpoints").iterdir()]
         assert names == ["checkpoint-000000000000"]  # no staging left behind
         rb = make_replay_buffer(cfg, "cpu")
