@@ -15,11 +15,12 @@ import warnings
 
 import torch
 from tensordict import TensorDict
+from torchrl.checkpoint import GlobalRNGState
 from torchrl.collectors import Collector
 
 from torchrl_rave.envs.episode_replay import EpisodeReplay, EpisodeReplayError
 
-__all__ = ["EpisodeCheckpoint", "EpisodeNotRestored", "episode_recorder", "restore_or_restart"]
+__all__ = ["EpisodeCheckpoint", "EpisodeNotRestored", "episode_recorder", "resume_collecting"]
 
 
 class EpisodeNotRestored(UserWarning):
@@ -148,11 +149,27 @@ class EpisodeCheckpoint:
         return None
 
 
-def restore_or_restart(episode: EpisodeCheckpoint, env, collector, seed: int) -> bool:
-    """Continues the episode of the checkpoint just loaded into ``episode``; where it
-    cannot (:class:`EpisodeNotRestored` says why), or where the run was about to start
-    new episodes anyway, reseeds ``env`` with ``seed`` and starts a new episode. Returns
-    whether the episode was continued."""
+def resume_collecting(
+    episode: EpisodeCheckpoint,
+    env,
+    collector,
+    seed: int,
+    rng_state: dict,
+    *,
+    continue_episode: bool,
+) -> bool:
+    """What a resumed run does with its first collector: continues the episode of the
+    checkpoint just loaded into ``episode`` (``continue_episode``, an in-process
+    collector); where it cannot (:class:`EpisodeNotRestored` says why), or where the run
+    was about to start new episodes anyway, reseeds ``env`` with ``seed`` and starts a new
+    episode. Then sets the random state back to ``rng_state``, the checkpoint's, whatever
+    building the collector drew. Returns whether the episode was continued."""
+    continued = continue_episode and _restore_or_restart(episode, env, collector, seed)
+    GlobalRNGState().load_state_dict(rng_state)
+    return continued
+
+
+def _restore_or_restart(episode: EpisodeCheckpoint, env, collector, seed: int) -> bool:
     planned = bool(episode.saved and episode.saved.get("new_episode"))
     why = None if planned else episode.restore(env, collector)
     if why is None and not planned:
@@ -163,7 +180,7 @@ def restore_or_restart(episode: EpisodeCheckpoint, env, collector, seed: int) ->
             f"the resumed run starts a new episode: the episode its checkpoint was taken "
             f"in could not be continued ({why})",
             EpisodeNotRestored,
-            stacklevel=2,
+            stacklevel=3,
         )
     env.set_seed(seed)
     collector.reset()

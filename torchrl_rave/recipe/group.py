@@ -58,7 +58,7 @@ from torchrl_rave.recipe.config import (
     check_resumable,
     replay_buffer_size,
 )
-from torchrl_rave.recipe.episode import EpisodeCheckpoint, restore_or_restart
+from torchrl_rave.recipe.episode import EpisodeCheckpoint, resume_collecting
 from torchrl_rave.recipe.evaluate import evaluate_agent, make_logger
 from torchrl_rave.recipe.loop import batch_metrics, nothing_to_train, record_update
 from torchrl_rave.trainers import SeedStreams
@@ -178,12 +178,13 @@ def train_group(cfg: DictConfig, run_dir: str) -> dict[str, float]:
     device = torch.device(cfg.collector.device or ("cuda" if torch.cuda.is_available() else "cpu"))
     apply_process_settings(cfg)
 
+    record = cfg.collector.backend == "direct"  # in-process envs keep their episodes
     seeds: list[_Seed] = []
     rng = SeedStreams(len(cfg.seeds), device)
     for i, seed in enumerate(cfg.seeds):
         one = _seed_config(cfg, int(seed))
         torch.manual_seed(one.env.seed)  # the single run's initialisation, seed by seed
-        env = make_env(one, device, record_episode=cfg.collector.backend == "direct")
+        env = make_env(one, device, record_episode=record)
         eval_env = make_env(one, device)
         agent = make_agent(one, env, device)
         seed_dir = root / f"seed{seed}"
@@ -260,11 +261,8 @@ def train_group(cfg: DictConfig, run_dir: str) -> dict[str, float]:
                 )
                 s.episode.attach(s.env, s.collector)
                 if s.rng_at_load is not None:  # a resumed seed continues its episode
-                    if cfg.collector.backend == "direct":
-                        restore_or_restart(
-                            s.episode, s.env, s.collector, s.seed + counters["frames"]
-                        )
-                    GlobalRNGState().load_state_dict(s.rng_at_load)
+                    resume_collecting(s.episode, s.env, s.collector, s.seed + counters["frames"],
+                                      s.rng_at_load, continue_episode=record)  # fmt: skip
                     s.rng_at_load = None
         iterators = [
             guarded_batches(s.collector, s.cfg, save_after_failure, lambda: counters["frames"],

@@ -54,7 +54,7 @@ from torchrl_rave.recipe.config import (
     resolve_config,
 )
 from torchrl_rave.recipe.curriculum import make_curriculum, stage_config
-from torchrl_rave.recipe.episode import EpisodeCheckpoint, restore_or_restart
+from torchrl_rave.recipe.episode import EpisodeCheckpoint, resume_collecting
 from torchrl_rave.recipe.evaluate import evaluate_agent, make_logger
 from torchrl_rave.recipe.reward import make_reward_relabelling, update_reward_weights
 from torchrl_rave.recipe.schema import default_config, defaults  # noqa: F401 (the example)
@@ -165,11 +165,10 @@ def _train(cfg: DictConfig, run_dir: str) -> dict[str, float]:
             collector = make_collector(run_cfg, env, agent.policy, device, counters["frames"])
             episode.attach(env, collector)
             if rng_at_load is not None:  # the first collector of a resumed run
-                if record:
-                    restore_or_restart(episode, env, collector, cfg.env.seed + counters["frames"])
-                # as it was when the checkpoint was written, whatever building the
-                # collector drew
-                GlobalRNGState().load_state_dict(rng_at_load)
+                seed = cfg.env.seed + counters["frames"]
+                resume_collecting(
+                    episode, env, collector, seed, rng_at_load, continue_episode=record
+                )
                 rng_at_load = None
             next_stage = False
             synced_at = counters["updates"]  # the workers start with the current weights
