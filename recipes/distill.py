@@ -16,6 +16,7 @@ from __future__ import annotations
 import argparse
 
 from torchrl_rave.recipe.distill import distill_run
+from torchrl_rave.recipe.trust import add_trust_flag
 
 
 def target_slice(text: str) -> slice | None:
@@ -40,7 +41,7 @@ def main(argv=None) -> dict:
     )
     parser.add_argument("--high", type=float, help="its high end (default: each entry's maximum)")
     parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--trust", action="store_true", help="trust the run directory's config")
+    add_trust_flag(parser)
     args = parser.parse_args(argv)
     target = target_slice(args.target)
     result = distill_run(

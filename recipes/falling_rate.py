@@ -31,6 +31,7 @@ from torchrl_rave.recipe.checkpoint import saved_config
 from torchrl_rave.recipe.evaluate import evaluate
 from torchrl_rave.recipe.runs import parse_groups, read_scalar
 from torchrl_rave.recipe.stats import wilson_interval
+from torchrl_rave.recipe.trust import add_trust_flag
 
 
 def final_falls(
@@ -100,11 +101,7 @@ def main(argv: list[str] | None = None) -> str:
     )
     parser.add_argument("--out", type=Path, default=Path("falling_rate.png"))
     parser.add_argument("--title", default=None)
-    parser.add_argument(
-        "--trust",
-        action="store_true",
-        help="the run directories are trusted: their saved env.name may import a module and their env.kwargs be opened (torchrl_rave.recipe.trust)",
-    )
+    add_trust_flag(parser)
     args = parser.parse_args(argv)
     if args.episodes < 0:
         parser.error("--episodes must be >= 0")

@@ -27,6 +27,7 @@ from torchrl.envs.utils import ExplorationType, set_exploration_type  # noqa: E4
 
 from torchrl_rave.envs.families import import_env_family  # noqa: E402
 from torchrl_rave.recipe.agent import load_agent  # noqa: E402
+from torchrl_rave.recipe.trust import add_trust_flag  # noqa: E402
 
 
 def constant_policy(level: float):
@@ -100,11 +101,7 @@ def main(argv=None) -> dict:
     parser.add_argument("--every", type=int, default=10)
     parser.add_argument("--max-steps", type=int, default=1000)
     parser.add_argument("--out", default="runner.png")
-    parser.add_argument(
-        "--trust",
-        action="store_true",
-        help="the run directories are trusted: their saved env.name may import a module and their env.kwargs be opened (torchrl_rave.recipe.trust)",
-    )
+    add_trust_flag(parser)
     args = parser.parse_args(argv)
     if args.every < 1:
         parser.error(f"--every must be >= 1, got {args.every}")

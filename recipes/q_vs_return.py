@@ -25,6 +25,7 @@ import torch
 
 from torchrl_rave.recipe.agent import critic_mean, load_agent, make_env
 from torchrl_rave.recipe.evaluate import discounted_returns, value_error
+from torchrl_rave.recipe.trust import add_trust_flag
 
 
 def load_run(run_dir: Path, trust: bool = False):
@@ -127,11 +128,7 @@ def main(argv: list[str] | None = None) -> str:
     parser.add_argument("--seed", type=int, default=12345, help="evaluation env seed")
     parser.add_argument("--out", type=Path, default=Path("q_vs_return.png"))
     parser.add_argument("--title", default=None)
-    parser.add_argument(
-        "--trust",
-        action="store_true",
-        help="the run directories are trusted: their saved env.name may import a module and their env.kwargs be opened (torchrl_rave.recipe.trust)",
-    )
+    add_trust_flag(parser)
     args = parser.parse_args(argv)
     if args.episodes < 1:
         parser.error("--episodes must be >= 1")

@@ -16,13 +16,20 @@ the command line) or says it trusts the directory (``load_policy(run_dir, trust=
 
 from __future__ import annotations
 
+import argparse
 import socket
 
 from omegaconf import DictConfig
 
 from torchrl_rave.recipe.config import ConfigError
 
-__all__ = ["UntrustedRunConfig", "check_trusted", "outside_references", "reach_ray_address"]
+__all__ = [
+    "UntrustedRunConfig",
+    "add_trust_flag",
+    "check_trusted",
+    "outside_references",
+    "reach_ray_address",
+]
 
 
 class UntrustedRunConfig(ConfigError):
@@ -92,3 +99,14 @@ def reach_ray_address(address: str, timeout_s: float) -> None:
             f"no Ray cluster answers at ray.address={address!r} ({err.strerror or err}) "
             f"within {timeout_s:g} s; check the address, or start the cluster"
         ) from None
+
+
+def add_trust_flag(parser: argparse.ArgumentParser) -> None:
+    """The ``--trust`` flag of a script that reads run directories: with it, their saved
+    ``env.name`` may import a module and their ``env.kwargs`` be opened."""
+    parser.add_argument(
+        "--trust",
+        action="store_true",
+        help="the run directories are trusted: their saved env.name may import a module and "
+        "their env.kwargs be opened (torchrl_rave.recipe.trust)",
+    )
