@@ -3,6 +3,8 @@
 python recipes/study.py run --jobs 2 --commit      # the cells still missing, two at a time
 python recipes/study.py run --config recipes/study/a.yaml recipes/study/b.yaml  # a's, then b's
 python recipes/study.py report                     # tables and figures from results/ only
+python recipes/study.py compare --config a.yaml --task T --against b.yaml --against-task U
+                                                   # the same cells of two studies, the same runs?
 
 To keep editing the project while cells run, run them from a frozen checkout of one commit
 and point ``--results`` at the working repository: ``git worktree add ../study HEAD``, then
@@ -33,6 +35,7 @@ from pathlib import Path
 
 import torch
 from compare import cell
+from study_compare import compare
 from study_report import report
 
 from torchrl_rave.recipe.checkpoint import RunCheckpoint
@@ -219,7 +222,7 @@ def run(args) -> None:
 def main(argv: list[str] | None = None):
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     sub = parser.add_subparsers(dest="command", required=True)
-    for name in ("run", "report"):
+    for name in ("run", "report", "compare"):
         p = sub.add_parser(name)
         p.add_argument("--results", type=Path, default=ROOT / "results")
     sub.choices["run"].add_argument("--config", type=Path, nargs="+", default=[DEFAULT],
@@ -237,14 +240,22 @@ def main(argv: list[str] | None = None):
         "steve, rave, rave_constant, td3, sac; seeds=[...]), still one committed cell per seed",
     )
     sub.choices["report"].add_argument("--figures", type=Path, default=ROOT / "docs" / "figures")
+    cmp = sub.choices["compare"]
+    cmp.add_argument("--config", type=Path, required=True, help="the study's YAML")
+    cmp.add_argument("--task", required=True, help="a task label of --config")
+    cmp.add_argument("--against", type=Path, required=True, help="the other study's YAML")
+    cmp.add_argument("--against-task", required=True, help="a task label of --against")
+    cmp.add_argument("--metric", default="eval/return", help="the metric compared")
     args = parser.parse_args(argv)
-    for config in args.config if args.command == "run" else [args.config]:
+    configs = {"run": lambda: args.config, "report": lambda: [args.config],
+               "compare": lambda: [args.config, args.against]}[args.command]()  # fmt: skip
+    for config in configs:
         if not config.is_file():
             parser.error(f"--config {config}: no such file")
     if args.command == "run" and args.jobs < 1:
         parser.error(f"--jobs must be at least 1, got {args.jobs}")
     try:
-        return run(args) if args.command == "run" else report(args)
+        return {"run": run, "report": report, "compare": compare}[args.command](args)
     except ConfigError as err:  # a study file's or a cell's config problems: the message
         raise SystemExit(str(err)) from None
 

@@ -9,6 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import study
+import study_compare
 import torch
 from test_recipe import TINY
 
@@ -490,3 +491,56 @@ def test_group_leaves_what_a_group_cannot_train_as_single_cells(tmp_path, monkey
         ("ppo/seed0", ()), ("ppo/seed1", ()), ("ppo/seed2", ()),
     ]  # fmt: skip
     assert "seeds=[0,2]" in seen[0].overrides
+
+
+def test_compare_finds_where_two_studies_cells_part(tmp_path, capsys):
+    """``study.py compare``: per algorithm and seed both studies have, the first evaluation
+    at which the metric differs, with each cell's machine and starts from its cell.json."""
+    results = tmp_path / "results"
+
+    def cell(study_name, task, algorithm, seed, rows, meta=None):
+        run = results / study_name / task / algorithm / f"seed{seed}"
+        csv = run / algorithm / "scalars" / "eval" / "return.csv"
+        csv.parent.mkdir(parents=True)
+        csv.write_text("".join(f"{step},{value}\n" for step, value in rows))
+        (run / "cell.json").write_text(json.dumps({"commit": "0123456789abcdef", **(meta or {})}))
+
+    mine = write_study(tmp_path, name="mine", seeds=[0, 1, 2],
+                       tasks=[{"label": "T0", "env": "Hopper-v5",
+                               "overrides": ["env.action_noise=0"]}])  # fmt: skip
+    other = tmp_path / "other.yaml"
+    other.write_text(json.dumps({"name": "other", "tasks": ["Hopper-v5"], "frames": 200,
+                                 "algorithms": ["rave", "ddpg", "td3"], "seeds": [0, 1]}))  # fmt: skip
+    machine = {"cpu": "AMD EPYC", "vector": "avx2"}
+    starts = [{"from_frame": 0}, {"from_frame": 100}]
+    cell("mine", "T0", "rave", 0, [(100, 1.5), (200, 2.25)], {"machine": machine, "starts": starts})
+    cell("other", "Hopper-v5", "rave", 0, [(100, 1.5), (200, 2.25)])
+    cell("mine", "T0", "ddpg", 0, [(100, 1.5), (200, 3.0)])
+    cell("other", "Hopper-v5", "ddpg", 0, [(100, 1.5), (200, 3.5)])
+    cell("mine", "T0", "rave", 1, [(100, 1.0), (200, 2.0)])
+    cell("other", "Hopper-v5", "rave", 1, [(100, 2.0), (200, 2.0)])
+    cell("mine", "T0", "ddpg", 1, [(100, 1.0)])  # no twin in the other study
+    cell("mine", "T0", "rave", 2, [(100, 1.0)])  # a seed the other study lacks
+    argv = ["compare", "--results", str(results), "--config", str(mine), "--task", "T0",
+            "--against", str(other), "--against-task", "Hopper-v5"]  # fmt: skip
+    text = study.main(argv)
+    rows = {
+        tuple(line.split(" | ")[:2]): line for line in text.splitlines() if line.startswith("| ")
+    }
+    assert rows[("| rave", "0")] == (
+        "| rave | 0 | 2 | every evaluation |  | 0123456; AMD EPYC (avx2); 0, then 100 | "
+        "0123456; not recorded; not recorded |"
+    )
+    assert "| 100 frames | 200 frames: 3.00 vs 3.50 |" in rows[("| ddpg", "0")]
+    assert "| none | 100 frames: 1.00 vs 2.00 |" in rows[("| rave", "1")]
+    assert ("| ddpg", "1") not in rows and ("| rave", "2") not in rows
+    assert "Not compared (a cell not finished in one of them): ddpg seed 1." in text
+
+    nan = float("nan")
+    steps = np.array([1, 2, 3])
+    same_nan = study_compare.first_difference(
+        (steps, np.array([nan, 1.0, 2.0])), (steps, np.array([nan, 1.0, 2.5]))
+    )
+    assert same_nan == (3, 2, (3, 2.0, 2.5))  # NaN rows equal as NaN, as a rerun logs them
+    with pytest.raises(SystemExit, match="'T9' is not a task of"):
+        study.main(argv[:5] + ["--task", "T9"] + argv[7:])
