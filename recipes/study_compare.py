@@ -7,7 +7,9 @@ For every algorithm and seed that both tasks have a finished cell of, it reads o
 (``eval/return`` by default) from both cells and finds the first evaluation at which the
 two differ, beside what each ``cell.json`` records of where the cell ran: its machine (CPU
 and vector unit) and the frames it started from (a resumed cell started more than once).
-Values are compared as the CSVs hold them, so "the same" is to the last digit. Cells
+Steps a cell's CSVs log twice show a second start where its ``cell.json`` predates
+the record of starts. Values are compared as the CSVs hold them, so "the same" is to
+the last digit. Cells
 part for one of three reasons, and the table shows which of them applies: a code change
 that reorders floating-point operations, another machine (BLAS picks its kernels by the
 CPU) or a resume (before resumes continued the episode they stopped in).
@@ -20,23 +22,27 @@ from pathlib import Path
 
 import numpy as np
 
-from torchrl_rave.recipe.runs import read_scalar
+from torchrl_rave.recipe.runs import read_scalar, relogged
 from torchrl_rave.recipe.studies import load_study, result_dir, tasks
 
 
-def _provenance(cell: Path) -> tuple[str, str, str]:
-    """(commit, machine, starts) of a finished cell, as its ``cell.json`` records them;
-    "not recorded" where the cell predates the record."""
+def _provenance(cell: Path) -> tuple[str, str, str, str]:
+    """(commit, machine, starts, steps logged twice) of a finished cell: the first three as
+    its ``cell.json`` records them ("not recorded" where the cell predates the record),
+    the last read from its CSVs (:func:`~torchrl_rave.recipe.runs.relogged`), which
+    shows a second start even where ``cell.json`` does not."""
     meta = json.loads((cell / "cell.json").read_text())
     m = meta.get("machine")
     machine = f"{m.get('cpu', '?')} ({m.get('vector', '?')})" if m else "not recorded"
     starts = meta.get("starts")
-    started = (
-        ", then ".join(f"{s.get('from_frame', '?'):,}" for s in starts)
-        if starts
-        else "not recorded"
-    )
-    return str(meta.get("commit", "?"))[:7], machine, started
+    started = "not recorded"
+    if starts:
+        started = ", then ".join(f"{s.get('from_frame', '?'):,}" for s in starts)
+    step, changed = relogged(cell)
+    twice = "none"
+    if step is not None:
+        twice = f"from {step:,} ({'other values' if changed else 'the same values'})"
+    return str(meta.get("commit", "?"))[:7], machine, started, twice
 
 
 def first_difference(a: tuple[np.ndarray, np.ndarray], b: tuple[np.ndarray, np.ndarray]):
@@ -72,7 +78,8 @@ def compare(args) -> str:
         f"{args.against_task} cells of the same algorithm and seed:",
         "",
         "| algorithm | seed | evaluations | the same up to | first difference | "
-        f"{mine.name}: commit; machine; started at | {other.name}: commit; machine; started at |",
+        f"{mine.name}: commit; machine; started at; logged twice | "
+        f"{other.name}: commit; machine; started at; logged twice |",
         "| --- | --- | --- | --- | --- | --- | --- |",
     ]
     missing = []

@@ -14,7 +14,7 @@ import torch
 from test_recipe import TINY
 
 from torchrl_rave.recipe.config import ConfigError
-from torchrl_rave.recipe.runs import read_scalar
+from torchrl_rave.recipe.runs import read_scalar, relogged
 from torchrl_rave.recipe.stats import interval95
 
 RAVE_DIAGNOSTICS = ["rave_alpha", "wm_transition_mse"] + [f"horizon_weight_h{h}" for h in range(4)]
@@ -514,6 +514,9 @@ def test_compare_finds_where_two_studies_cells_part(tmp_path, capsys):
     machine = {"cpu": "AMD EPYC", "vector": "avx2"}
     starts = [{"from_frame": 0}, {"from_frame": 100}]
     cell("mine", "T0", "rave", 0, [(100, 1.5), (200, 2.25)], {"machine": machine, "starts": starts})
+    losses = results / "mine" / "T0" / "rave" / "seed0" / "rave" / "scalars" / "train"
+    losses.mkdir(parents=True)  # a resume from 100 frames: 150 and 200 logged again
+    (losses / "loss_critic.csv").write_text("50,1.0\n100,2.0\n150,3.0\n200,4.0\n150,3.0\n200,4.5\n")
     cell("other", "Hopper-v5", "rave", 0, [(100, 1.5), (200, 2.25)])
     cell("mine", "T0", "ddpg", 0, [(100, 1.5), (200, 3.0)])
     cell("other", "Hopper-v5", "ddpg", 0, [(100, 1.5), (200, 3.5)])
@@ -528,8 +531,8 @@ def test_compare_finds_where_two_studies_cells_part(tmp_path, capsys):
         tuple(line.split(" | ")[:2]): line for line in text.splitlines() if line.startswith("| ")
     }
     assert rows[("| rave", "0")] == (
-        "| rave | 0 | 2 | every evaluation |  | 0123456; AMD EPYC (avx2); 0, then 100 | "
-        "0123456; not recorded; not recorded |"
+        "| rave | 0 | 2 | every evaluation |  | 0123456; AMD EPYC (avx2); 0, then 100; "
+        "from 150 (other values) | 0123456; not recorded; not recorded; none |"
     )
     assert "| 100 frames | 200 frames: 3.00 vs 3.50 |" in rows[("| ddpg", "0")]
     assert "| none | 100 frames: 1.00 vs 2.00 |" in rows[("| rave", "1")]
@@ -544,3 +547,26 @@ def test_compare_finds_where_two_studies_cells_part(tmp_path, capsys):
     assert same_nan == (3, 2, (3, 2.0, 2.5))  # NaN rows equal as NaN, as a rerun logs them
     with pytest.raises(SystemExit, match="'T9' is not a task of"):
         study.main(argv[:5] + ["--task", "T9"] + argv[7:])
+
+
+def test_relogged_finds_a_second_start_in_the_losses(tmp_path):
+    scalars = tmp_path / "run" / "scalars"
+    (scalars / "train").mkdir(parents=True)
+    (scalars / "time").mkdir()
+
+    def write(name, rows):
+        (scalars / f"{name}.csv").write_text("".join(f"{s},{v}\n" for s, v in rows))
+
+    write("train/loss_critic", [(10, 1.0), (20, 2.0), (30, 3.0)])
+    # several episodes can end at one step, and timings differ between any two starts
+    write("train/episode_reward", [(10, 5.0), (10, 6.0)])
+    write("time/fps", [(10, 100.0), (20, 90.0), (10, 80.0)])
+    assert relogged(tmp_path) == (None, False)
+    write(
+        "train/loss_actor",
+        [(10, 1.0), (20, float("nan")), (30, 3.0), (20, float("nan")), (30, 3.0)],
+    )
+    assert relogged(tmp_path) == (20, False)  # a restart that repeated the first start
+    write("train/loss_critic", [(10, 1.0), (20, 2.0), (30, 3.0), (40, 4.0), (30, 3.5)])
+    assert relogged(tmp_path) == (20, True)  # the first step twice; a value that changed
+    assert relogged(tmp_path, "train/loss_critic") == (30, True)

@@ -31,6 +31,7 @@ __all__ = [
     "launch_grid",
     "parse_groups",
     "read_scalar",
+    "relogged",
     "train_seconds",
     "value_logged_at",
 ]
@@ -73,6 +74,28 @@ def read_scalar(run_dir: str | Path, metric: str) -> tuple[np.ndarray, np.ndarra
     latest = dict(rows)
     steps = np.array(sorted(latest), dtype=np.int64)
     return steps, np.array([latest[s] for s in steps], dtype=np.float64)
+
+
+def relogged(run_dir: str | Path, metrics: str = "train/loss_*") -> tuple[int | None, bool]:
+    """Whether a run directory's losses log some step twice, as a run that was stopped
+    and started again does: it logs again the steps between the checkpoint it started
+    from and where it stopped. ``metrics`` globs the CSV metrics read: by default the
+    losses, which a run logs once per batch (an episode's return may log several rows
+    at one step, and timings differ between any two starts). Returns the first step
+    logged twice (``None`` if none) and whether any value logged again differs from the
+    first: the same values mean the second start repeated the first exactly (a restart
+    from frame 0, or a resume that continued its episode), other values that the run
+    parted from there on."""
+    first_twice, changed = None, False
+    for path in Path(run_dir).glob(f"*/scalars/{metrics}.csv"):
+        seen: dict[int, float] = {}
+        for step, value in _csv_rows(path):
+            if step in seen:
+                first_twice = step if first_twice is None else min(first_twice, step)
+                changed |= value != seen[step] and not (np.isnan(value) and np.isnan(seen[step]))
+            else:
+                seen[step] = value
+    return first_twice, changed
 
 
 def _csv_rows(path: Path) -> list[tuple[int, float]]:
