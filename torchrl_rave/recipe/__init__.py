@@ -34,7 +34,14 @@ from torchrl_rave.recipe.checkpoint import RunCheckpoint
 from torchrl_rave.recipe.config import ALGORITHMS, ConfigError, check_config
 from torchrl_rave.recipe.loop import train
 from torchrl_rave.recipe.memory import keep_freed_memory
-from torchrl_rave.recipe.runs import Cell, GridStopped, launch_grid, read_scalar, train_seconds
+from torchrl_rave.recipe.runs import (
+    Cell,
+    GridStopped,
+    launch_grid,
+    read_scalar,
+    relogged,
+    train_seconds,
+)
 from torchrl_rave.recipe.schema import RecipeConfig, default_config
 
 __all__ = [
@@ -54,6 +61,7 @@ __all__ = [
     "make_agent",
     "make_env",
     "read_scalar",
+    "relogged",
     "train",
     "train_seconds",
 ]
