@@ -85,7 +85,9 @@ def relogged(run_dir: str | Path, metrics: str = "train/loss_*") -> tuple[int | 
     logged twice (``None`` if none) and whether any value logged again differs from the
     first: the same values mean the second start repeated the first exactly (a restart
     from frame 0, or a resume that continued its episode), other values that the run
-    parted from there on."""
+    parted from there on. Only a stop that lost frames shows (a kill, a crash, the end of
+    a machine): a run stopped by Ctrl-C or SIGTERM checkpoints where it stops, and its
+    resume logs nothing twice."""
     first_twice, changed = None, False
     for path in Path(run_dir).glob(f"*/scalars/{metrics}.csv"):
         seen: dict[int, float] = {}
