@@ -479,6 +479,27 @@ class TestCheckpoints:
         assert "preset= does not apply to a resumed run" in done.stderr
         assert RunCheckpoint(tmp_path).read("counters")["frames"] == 200  # nothing ran
 
+    def test_extending_a_run_past_its_buffer_says_what_it_drops(self):
+        """replay_buffer.size is fixed at the first start (by default its total frames):
+        training a resumed run on past it drops transitions a longer run would keep."""
+        import warnings
+
+        from torchrl_rave.recipe.config import check_resumable
+
+        saved = make_cfg(*TINY, "algorithm=ddpg", "collector.total_frames=200")
+        saved.replay_buffer.size = 200  # as the first start fixes it
+        with pytest.warns(UserWarning, match=r"holds 200 transitions.*total_frames=300 drops"):
+            check_resumable(make_cfg(*TINY, "algorithm=ddpg", "collector.total_frames=300",
+                                     "resume=run"), saved)  # fmt: skip
+        with warnings.catch_warnings():
+            warnings.simplefilter("error")
+            for total in (200, 150):  # a finished run, or a total within the buffer
+                check_resumable(make_cfg(*TINY, "algorithm=ddpg", f"collector.total_frames={total}",
+                                         "resume=run"), saved)  # fmt: skip
+            saved.replay_buffer.size = 100  # a run that dropped transitions from the start
+            check_resumable(make_cfg(*TINY, "algorithm=ddpg", "collector.total_frames=300",
+                                     "resume=run"), saved)  # fmt: skip
+
 
 class TestDeterminism:
     def test_same_seed_same_losses(self, tmp_path):

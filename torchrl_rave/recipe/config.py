@@ -12,6 +12,7 @@ import importlib.util
 import math
 import os
 import re
+import warnings
 from dataclasses import dataclass
 
 import torch
@@ -512,3 +513,12 @@ def check_resumable(cfg: DictConfig, saved: DictConfig) -> None:
     ]
     if problems:
         raise ConfigError(problems)
+    size, total = saved.replay_buffer.size, cfg.collector.total_frames
+    if saved.collector.total_frames <= size < total:
+        warnings.warn(
+            f"resume={cfg.resume!r}: the replay buffer holds {size:,} transitions, its size "
+            f"at the run's first start (replay_buffer.size cannot change on resume); "
+            f"training on to collector.total_frames={total:,} drops the oldest transitions "
+            "once it is full, which a run started with that total would have kept",
+            stacklevel=2,
+        )
