@@ -496,9 +496,10 @@ class TestCheckpoints:
             for total in (200, 150):  # a finished run, or a total within the buffer
                 check_resumable(make_cfg(*TINY, "algorithm=ddpg", f"collector.total_frames={total}",
                                          "resume=run"), saved)  # fmt: skip
-            saved.replay_buffer.size = 100  # a run that dropped transitions from the start
-            check_resumable(make_cfg(*TINY, "algorithm=ddpg", "collector.total_frames=300",
-                                     "resume=run"), saved)  # fmt: skip
+            for size in (100, None):  # dropped transitions from the start; sized on resume
+                saved.replay_buffer.size = size
+                check_resumable(make_cfg(*TINY, "algorithm=ddpg", "collector.total_frames=300",
+                                         "resume=run"), saved)  # fmt: skip
 
 
 class TestDeterminism:

@@ -514,7 +514,7 @@ def check_resumable(cfg: DictConfig, saved: DictConfig) -> None:
     if problems:
         raise ConfigError(problems)
     size, total = saved.replay_buffer.size, cfg.collector.total_frames
-    if saved.collector.total_frames <= size < total:
+    if size is not None and saved.collector.total_frames <= size < total:
         warnings.warn(
             f"resume={cfg.resume!r}: the replay buffer holds {size:,} transitions, its size "
             f"at the run's first start (replay_buffer.size cannot change on resume); "
