@@ -479,6 +479,25 @@ class TestCheckpoints:
         assert "preset= does not apply to a resumed run" in done.stderr
         assert RunCheckpoint(tmp_path).read("counters")["frames"] == 200  # nothing ran
 
+    @pytest.mark.parametrize("total", [250, 300, 50])
+    def test_a_resumed_collector_ends_where_the_uninterrupted_one_does(self, total):
+        """A total that is not a whole number of batches is rounded up to one, as TorchRL's
+        collectors do: from any checkpoint on the batch grid, a resumed run collects the
+        batches the uninterrupted run would have (not a short last batch of the bare
+        remainder, which made a run killed within its last batch end at a frame, with a
+        number of updates and an evaluation, that the uninterrupted run never had)."""
+        from torchrl_rave.recipe.collect import make_collector
+
+        cfg = make_cfg(*TINY, "algorithm=ddpg", f"collector.total_frames={total}")
+        env = make_env(cfg, torch.device("cpu"))
+        ends = {}
+        for done in range(0, total, min(100, total)):  # TINY's batches are 100 frames
+            collector = make_collector(cfg, env, None, torch.device("cpu"), done)
+            ends[done] = done + sum(batch.numel() for batch in collector)
+            collector.shutdown()
+        env.close()
+        assert set(ends.values()) == {-(-total // 100) * 100 if total > 100 else total}, ends
+
     def test_extending_a_run_past_its_buffer_says_what_it_drops(self):
         """replay_buffer.size is fixed at the first start (by default its total frames):
         training a resumed run on past it drops transitions a longer run would keep."""

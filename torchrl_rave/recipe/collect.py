@@ -19,7 +19,10 @@ from torchrl_rave.recipe.config import ALGORITHMS, check_ray_fits
 
 
 def make_collector(cfg: DictConfig, env, policy, device, frames_done: int = 0):
-    """A collector for the frames still to go (``frames_done`` > 0 when resuming).
+    """A collector for the frames still to go (``frames_done`` > 0 when resuming): the
+    batches of ``collector.frames_per_batch`` frames an uninterrupted run collects from
+    frame 0, the last of them past ``collector.total_frames`` where the total is not a
+    whole number of batches, as TorchRL's collectors round it up.
 
     ``collector.backend=direct`` steps ``env`` in this process. ``process`` runs
     ``collector.num_workers`` env processes through TorchRL's ``MultiSyncCollector``, and
@@ -29,9 +32,14 @@ def make_collector(cfg: DictConfig, env, policy, device, frames_done: int = 0):
     batch; the batch holds every worker's share, so the learner's update-to-data ratio is
     exact. :func:`push_policy_weights` sends the learner's weights to the workers.
     """
-    remaining = cfg.collector.total_frames - frames_done
+    total = cfg.collector.total_frames
+    # a run collects whole batches from frame 0, the last one past the total where the
+    # total is not a whole number of batches (TorchRL's collectors round it up): a resumed
+    # run collects the batches the uninterrupted run would have, not the bare remainder
+    grid = min(cfg.collector.frames_per_batch, total)
+    remaining = -(-total // grid) * grid - frames_done
     common = dict(
-        frames_per_batch=min(cfg.collector.frames_per_batch, remaining),
+        frames_per_batch=min(grid, remaining),
         total_frames=remaining,
         init_random_frames=max(0, cfg.collector.init_random_frames - frames_done),
     )
