@@ -7,13 +7,13 @@ For every algorithm and seed that both tasks have a finished cell of, it reads o
 (``eval/return`` by default) from both cells and finds the first evaluation at which the
 two differ, beside what each ``cell.json`` records of where the cell ran: its machine (CPU
 and vector unit) and the frames it started from (a resumed cell started more than once).
-Steps a cell's losses log twice show a second start where its ``cell.json`` predates
-the record of starts (a start after a kill or a crash; a run stopped by Ctrl-C or
-SIGTERM checkpoints where it stops and logs nothing twice). Values are compared as the CSVs hold them, so "the same" is to
-the last digit. Cells
-part for one of three reasons, and the table shows which of them applies: a code change
-that reorders floating-point operations, another machine (BLAS picks its kernels by the
-CPU) or a resume (before resumes continued the episode they stopped in).
+Steps a cell's losses log twice show a second start where its ``cell.json`` predates the
+record of starts (a start after a kill or a crash; a run stopped by Ctrl-C or SIGTERM
+checkpoints where it stops and logs nothing twice). Values are compared as the CSVs hold
+them, so "the same" is to the last digit. Two runs of one configuration part for one of
+three reasons, and the table shows which applies: a code change that reorders
+floating-point operations, another machine (BLAS picks its kernels by the CPU), or a
+resume (before resumes continued the episode they stopped in).
 """
 
 from __future__ import annotations
@@ -38,7 +38,8 @@ def _provenance(cell: Path) -> tuple[str, str, str, str]:
     starts = meta.get("starts")
     started = "not recorded"
     if starts:
-        started = ", then ".join(f"{s.get('from_frame', '?'):,}" for s in starts)
+        frames = [s.get("from_frame") for s in starts]
+        started = ", then ".join(f"{f:,}" if isinstance(f, int) else "?" for f in frames)
     step, changed = relogged(cell)
     twice = "none"
     if step is not None:
