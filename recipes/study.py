@@ -247,8 +247,9 @@ def main(argv: list[str] | None = None):
     cmp.add_argument("--against-task", required=True, help="a task label of --against")
     cmp.add_argument("--metric", default="eval/return", help="the metric compared")
     args = parser.parse_args(argv)
-    configs = {"run": lambda: args.config, "report": lambda: [args.config],
-               "compare": lambda: [args.config, args.against]}[args.command]()  # fmt: skip
+    configs = args.config if args.command == "run" else [args.config]
+    if args.command == "compare":
+        configs.append(args.against)
     for config in configs:
         if not config.is_file():
             parser.error(f"--config {config}: no such file")
