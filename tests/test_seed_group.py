@@ -303,3 +303,64 @@ def test_a_seeds_draws_do_not_depend_on_its_group(algorithm):
         close(a, b, "parameters")
     with pytest.raises(ValueError, match="streams hold 2 seeds"):
         make_group([learner(algorithm, 0)[1]], cfg, streams=seed_group.SeedStreams(2))
+
+
+@pytest.mark.parametrize("output_major", [True, False])
+def test_a_large_layers_owed_bias_is_the_bias_it_left_out(output_major, monkeypatch):
+    """Without autograd, a large ReLU layer returns ``max(x w, -b)`` and owes ``b``; the
+    next layer takes the owed bias into its own. Against a loop over the matrices of
+    ``relu(x w + b)``, layer after layer, for K members of S seeds."""
+    monkeypatch.setattr(seed_group, "_LARGE", 0)
+    g = torch.Generator().manual_seed(0)
+    S, K, R, widths = 2, 3, 7, [5, 6, 6, 2]
+    layers, naive = [], []
+    for j, (i, o) in enumerate(zip(widths[:-1], widths[1:], strict=True)):
+        w = torch.randn(S, K, o, i, generator=g)
+        b = torch.randn(S, K, o, generator=g)
+        act = torch.nn.ReLU() if j < len(widths) - 2 else None
+        if not output_major:  # EnsembleLinear's layout: [..., in, out], bias [..., 1, out]
+            w, b = w.mT.contiguous(), b.unsqueeze(-2)
+        layers.append(seed_group._Linear(w, b, act, output_major))
+        naive.append((w if output_major else w.mT, b.reshape(S, K, o), act))
+    x = torch.randn(S, R, widths[0], generator=g)
+    want = torch.empty(S, K, R, widths[-1])
+    for s in range(S):
+        for k in range(K):
+            h = x[s]
+            for w, b, act in naive:
+                h = h @ w[s, k].T + b[s, k]
+                h = h if act is None else h.clamp_min(0)
+            want[s, k] = h
+    with torch.no_grad():
+        y, owed = seed_group._run(layers[:2], x, settle=False)
+        assert owed is not None and owed.shape == (S * K, 1, widths[2])
+        torch.testing.assert_close(y + owed.view(S, K, 1, -1), seed_group._run(layers[:2], x))
+        torch.testing.assert_close(seed_group._run(layers, x), want)
+    # with autograd the layers add their bias as they go: nothing is owed
+    x.requires_grad_(True)
+    assert seed_group._run(layers[:2], x, settle=False)[1] is None
+    torch.testing.assert_close(seed_group._run(layers, x), want)
+
+
+def test_without_autograd_a_groups_gaussian_heads_are_one_layer(monkeypatch):
+    """In a group of more than one, without autograd, the mean and log-variance heads run
+    as one layer of twice the width; the outputs are the two heads' to float rounding."""
+    cfg, _ = learner("rave", 0)
+    group = make_group([learner("rave", s)[1] for s in range(2)], cfg)
+    wm = group.world_model
+    x = torch.randn(2, 3, 9, OBS + ACT)  # [S, N, rows, features]
+    calls = []
+    original = seed_group._Linear.apply
+
+    def counting(layer, *args, **kwargs):
+        calls.append(layer.weight.shape[-1])
+        return original(layer, *args, **kwargs)
+
+    monkeypatch.setattr(seed_group._Linear, "apply", counting)
+    with torch.no_grad():
+        fused = wm._gaussian_forward(wm.transition, x)
+    monkeypatch.undo()
+    assert calls[-1] == 2 * OBS  # one layer for both heads, of twice the width
+    separate = wm._gaussian_forward(wm.transition, x)  # with autograd: the two heads
+    for a, b in zip(fused, separate, strict=True):
+        torch.testing.assert_close(a, b.detach())

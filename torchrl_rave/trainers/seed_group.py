@@ -115,7 +115,17 @@ class _Linear:
     per member; the output is ``[S, *E, R, out]``. Each layer is one ``baddbmm`` over the
     ``S x E`` matrices; a layer of one matrix (a group of one's actor, or DDPG's one
     critic) is the ``F.linear`` call its single learner makes, so that a group of one
-    rounds as its single run does."""
+    rounds as its single run does.
+
+    Outputs larger than the caches (over 2 MiB) cost a pass over memory for each
+    element-wise step, so the layer avoids them where it can. Without autograd, a ReLU
+    layer's output is returned with its bias still *owed*: ``max(x w, -b)``, which is
+    ``relu(x w + b) - b``, with ``b`` handed on (:meth:`apply`) and folded into the next
+    layer's bias as ``b + owed w``. That is one pass (the clamp) where ``bias add`` and
+    ``relu`` take two. At S = 8 it spares five of the value target's passes over
+    13.6 MB tensors (``benchmarks/README.md``, the seed-group section). The product is the
+    same up to rounding; outputs of a group of one are never this large, so a group of
+    one still rounds as its single run does."""
 
     __slots__ = ("weight", "bias", "activation", "output_major")
 
@@ -123,7 +133,14 @@ class _Linear:
         self.weight, self.bias, self.activation = weight, bias, activation
         self.output_major = output_major
 
-    def __call__(self, x: Tensor, detach: bool = False) -> Tensor:
+    def __call__(self, x: Tensor, detach: bool = False, owed: Tensor | None = None) -> Tensor:
+        return _settle(*self.apply(x, detach, owed))
+
+    def apply(
+        self, x: Tensor, detach: bool = False, owed: Tensor | None = None
+    ) -> tuple[Tensor, Tensor | None]:
+        """The layer on ``x + owed`` (``owed``: a bias ``[S * E, 1, in]`` that ``x`` does
+        not hold yet, or ``None``); returns ``(y, owed)`` in the same sense."""
         w, b = self.weight, self.bias
         if detach:
             w, b = w.detach(), None if b is None else b.detach()
@@ -139,6 +156,19 @@ class _Linear:
                 x = x.unsqueeze(1).expand(*lead, rows, fan_in)
             x = x.reshape(-1, rows, fan_in)
             w = w.reshape(-1, fan_in, fan_out)
+        if b is not None:
+            b = b.reshape(-1, 1, fan_out)
+        if owed is not None:  # (x + owed) w + b = x w + (owed w + b)
+            b = torch.bmm(owed, w) if b is None else torch.baddbmm(b, owed, w)
+        large = x.shape[0] * rows * fan_out > _LARGE
+        if (
+            large
+            and b is not None
+            and type(self.activation) is torch.nn.ReLU
+            and not (torch.is_grad_enabled() and (x.requires_grad or w.requires_grad))
+        ):
+            y = torch.bmm(x, w).clamp_(min=b.neg())  # relu(x w + b) - b
+            return y.view(*lead, rows, fan_out), b
         if x.shape[0] == 1 and self.output_major:
             # one matrix (a group of one's actor, or its one critic): the 2-D call its
             # learner makes (nn.Linear's, as TensorCall makes for one member); BLAS need
@@ -146,26 +176,37 @@ class _Linear:
             y = F.linear(x[0], w[0].mT, None if b is None else b.reshape(fan_out))
         elif b is None:
             y = torch.bmm(x, w)
-        elif x.shape[0] * rows * fan_out > _LARGE:
+        elif large:
             # an output larger than the caches: baddbmm first writes the bias over all of
             # it and BLAS then reads it back; the product, then the bias added in place,
             # spares one pass (a RAVE target layer at S = 8: 6.6 -> 5.5 ms at 1 thread)
-            y = torch.bmm(x, w).add_(b.reshape(-1, 1, fan_out))
+            y = torch.bmm(x, w).add_(b)
         else:
-            y = torch.baddbmm(b.reshape(-1, 1, fan_out), x, w)
+            y = torch.baddbmm(b, x, w)
         if self.activation is not None:
             # on the product itself, before the view: an in-place op on a view makes
             # autograd rebase it (CopySlices), whose backward clones and zero-fills the
             # whole output (128 of the ATen calls of a RAVE group update)
             inplace = inplace_activation(self.activation)
             y = self.activation(y) if inplace is None else inplace(y)
-        return y if y.dim() == len(lead) + 2 else y.view(*lead, rows, fan_out)
+        return (y if y.dim() == len(lead) + 2 else y.view(*lead, rows, fan_out)), None
 
 
-def _run(layers: list[_Linear], x: Tensor, detach: bool = False) -> Tensor:
+def _settle(y: Tensor, owed: Tensor | None) -> Tensor:
+    """``y`` with the bias it owes (see :class:`_Linear`) added."""
+    if owed is None:
+        return y
+    return y.add_(owed.view(*y.shape[:-2], 1, y.shape[-1]))
+
+
+def _run(
+    layers: list[_Linear], x: Tensor, detach: bool = False, settle: bool = True
+) -> Tensor | tuple[Tensor, Tensor | None]:
+    """The layers in turn; with ``settle=False``, ``(y, owed)`` as :meth:`_Linear.apply`."""
+    owed = None
     for layer in layers:
-        x = layer(x, detach)
-    return x
+        x, owed = layer.apply(x, detach, owed)
+    return _settle(x, owed) if settle else (x, owed)
 
 
 def _mlp_layers(
@@ -299,9 +340,20 @@ class _GroupedWorldModel:
 
     @staticmethod
     def _gaussian_forward(head: dict, x: Tensor) -> tuple[Tensor, Tensor]:
-        h = _run(head["trunk"], x)
-        mean = head["mean"](h)
-        raw = head["logvar"](h)
+        h, owed = _run(head["trunk"], x, settle=False)
+        means, logvars = head["mean"], head["logvar"]
+        if torch.is_grad_enabled() or means.weight.shape[0] == 1:
+            mean, raw = means(h, owed=owed), logvars(h, owed=owed)
+        else:
+            # without autograd, in a group of more than one: both heads as one layer of
+            # twice the width. BLAS runs an 11-wide product far below its speed; the
+            # 22-wide one takes about the time of one 11-wide (a rollout step's heads at
+            # S = 8: 0.40 -> 0.21 ms). A group of one keeps its single run's calls.
+            width = means.weight.shape[-1]
+            both = _Linear(torch.cat([means.weight, logvars.weight], -1),
+                           torch.cat([means.bias, logvars.bias], -1), None, False)  # fmt: skip
+            y = both(h, owed=owed)
+            mean, raw = y[..., :width], y[..., width:]
         top, bottom = head["max"], head["min"]  # [S, N, 1, F]
         logvar = top - F.softplus(top - raw)
         return mean, bottom + F.softplus(logvar - bottom)
