@@ -6,6 +6,8 @@ learners against S separate single-learner updates, measured side by side in one
     python benchmarks/seed_group.py --algorithms rave --seeds 1 4 --threads 2
     python benchmarks/seed_group.py --algorithms rave --seeds 4 8 --threads 2 --repeats 5
     python benchmarks/seed_group.py --streams-cost --algorithms rave --seeds 4 8 --threads 2
+    git show <commit>:torchrl_rave/trainers/seed_group.py > /tmp/seed_group_old.py
+    python benchmarks/seed_group.py --against /tmp/seed_group_old.py --algorithms rave --seeds 8 --threads 2
 
 For each algorithm, thread count and S, two workloads run interleaved (the median of
 several rounds, as in ``update_throughput.py``):
@@ -26,12 +28,20 @@ With ``--repeats n`` each S is measured n times over (the separate learners' spe
 between runs on a shared machine); a row then reports the repeat with the median ratio
 and lists every repeat's ratio (``speedup_repeats``).
 Results go to stdout and ``benchmarks/seed_group.json`` (``--out``).
+
+``--against FILE`` times a change to the group itself: the group of this checkout against
+the same group built from another copy of ``torchrl_rave/trainers/seed_group.py`` (an
+older commit's, say), in paired rounds in one process, each round timing both in turn
+(the order alternating), so that the machine's drift cancels in each round's ratio.
 """
 
 from __future__ import annotations
 
 import argparse
+import importlib.util
 import json
+import statistics
+import time
 from pathlib import Path
 
 import torch
@@ -204,6 +214,66 @@ def streams_cost(algorithms, seeds, threads, device, seconds: float) -> dict:
     return {"rows": rows}
 
 
+def against(path: Path, algorithms, seeds, threads, device, seconds: float) -> dict:
+    """This checkout's group against the group of the ``seed_group.py`` at ``path``: the
+    median of paired rounds' time ratios (this / that), with its quartiles."""
+    import torchrl_rave.trainers as trainers
+
+    spec = importlib.util.spec_from_file_location("seed_group_baseline", path)
+    baseline = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(baseline)
+    rows = []
+    for n_threads in threads:
+        if device.type == "cpu":
+            torch.set_num_threads(n_threads)
+        for algorithm in algorithms:
+            for S in seeds:
+                mine, _ = group_case(algorithm, S, device)
+                current, trainers.SeedGroup = trainers.SeedGroup, baseline.SeedGroup
+                try:  # make_seed_group builds trainers.SeedGroup
+                    theirs, built = group_case(algorithm, S, device)
+                finally:
+                    trainers.SeedGroup = current
+                assert type(built) is baseline.SeedGroup
+                for case in (mine, theirs):  # warm-up: optimiser moments, allocator
+                    for _ in range(3):
+                        case.step()
+                times = {"this": [], "baseline": []}
+                end, order = (
+                    time.perf_counter() + 2 * seconds,
+                    [("this", mine), ("baseline", theirs)],
+                )
+                while time.perf_counter() < end:
+                    for name, case in order:
+                        sync(device)
+                        start = time.perf_counter()
+                        for _ in range(3):
+                            case.step()
+                        sync(device)
+                        times[name].append((time.perf_counter() - start) / 3)
+                    order.reverse()
+                ratios = [a / b for a, b in zip(times["this"], times["baseline"], strict=True)]
+                q1, median, q3 = statistics.quantiles(ratios, n=4)
+                row = {
+                    "algorithm": algorithm,
+                    "threads": n_threads,
+                    "seeds": S,
+                    "rounds": len(ratios),
+                    "this_ms": statistics.median(times["this"]) * 1e3,
+                    "baseline_ms": statistics.median(times["baseline"]) * 1e3,
+                    "time_ratio": median,
+                    "time_ratio_quartiles": [q1, q3],
+                }
+                rows.append(row)
+                print(
+                    f"{algorithm:5s} threads={n_threads} S={S}: this {row['this_ms']:.1f} ms, "
+                    f"baseline {row['baseline_ms']:.1f} ms per group update; paired ratio "
+                    f"{median:.3f} (quartiles {q1:.3f}-{q3:.3f}, {len(ratios)} rounds)",
+                    flush=True,
+                )
+    return {"baseline": str(path), "rows": rows}
+
+
 def main(argv: list[str] | None = None) -> dict:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--algorithms", nargs="+", default=["rave", "ddpg"])
@@ -224,6 +294,15 @@ def main(argv: list[str] | None = None) -> dict:
         help="measure each S this many times; a row reports the repeat with the median "
         "ratio and lists every repeat's (separate learners' speed moves between runs)",
     )
+    parser.add_argument(
+        "--against",
+        type=Path,
+        default=None,
+        metavar="FILE",
+        help="instead: time this checkout's group against the group of another copy of "
+        "seed_group.py, in paired rounds (to benchmarks/seed_group_against.json unless "
+        "--out is given)",
+    )
     parser.add_argument("--out", type=Path, default=None)
     args = parser.parse_args(argv)
     unknown = [a for a in args.algorithms if a not in GROUP_ALGORITHMS]
@@ -231,10 +310,18 @@ def main(argv: list[str] | None = None) -> dict:
         parser.error(f"--algorithms {unknown}: a seed group trains {', '.join(GROUP_ALGORITHMS)}")
     if torch.device(args.device).type == "cuda" and not torch.cuda.is_available():
         parser.error("--device cuda but torch.cuda.is_available() is False")
-    if args.repeats > 1 and args.streams_cost:
-        parser.error("--repeats applies to the speed-up rows, not to --streams-cost")
+    if args.repeats > 1 and (args.streams_cost or args.against):
+        parser.error("--repeats applies to the speed-up rows only")
+    if args.streams_cost and args.against:
+        parser.error("--streams-cost and --against are two different measurements")
+    if args.against is not None and not args.against.is_file():
+        parser.error(f"--against {args.against}: no such file")
     if args.out is None:
-        name = "seed_group_streams.json" if args.streams_cost else "seed_group.json"
+        name = (
+            "seed_group_streams.json" if args.streams_cost
+            else "seed_group_against.json" if args.against
+            else "seed_group.json"
+        )  # fmt: skip
         args.out = ROOT / "benchmarks" / name
     device = torch.device(args.device)
     malloc_kept = keep_freed_memory()
@@ -246,6 +333,8 @@ def main(argv: list[str] | None = None) -> dict:
         **(
             streams_cost(args.algorithms, args.seeds, threads, device, args.seconds)
             if args.streams_cost
+            else against(args.against, args.algorithms, args.seeds, threads, device, args.seconds)
+            if args.against
             else run(args.algorithms, args.seeds, threads, device, args.seconds, args.repeats)
         ),
     }

@@ -377,3 +377,30 @@ def test_seed_group_streams_cost_compares_the_two_ways_of_drawing(tmp_path):
     assert row["algorithm"] == "td3" and row["seeds"] == 2
     assert row["own_streams_ms"] > 0 and row["shared_stream_ms"] > 0
     assert row["ratio"] == pytest.approx(row["own_streams_ms"] / row["shared_stream_ms"])
+
+
+def test_seed_group_against_times_the_group_of_another_file(tmp_path, capsys):
+    """benchmarks/seed_group.py --against: the baseline group is built from the given copy
+    of seed_group.py. A copy whose update sleeps 50 ms is the slower one in every round."""
+    import seed_group
+
+    import torchrl_rave.trainers.seed_group as module
+
+    source = Path(module.__file__).read_text()
+    marker = "        if self.sac:\n            return self._update_sac(batch)\n"
+    assert marker in source
+    slow = tmp_path / "slow_seed_group.py"
+    slow.write_text(source.replace(marker, "        __import__('time').sleep(0.05)\n" + marker))
+    out = tmp_path / "against.json"
+    seed_group.main(
+        ["--against", str(slow), "--algorithms", "ddpg", "--seeds", "2", "--threads", "1",
+         "--seconds", "0.5", "--out", str(out)]
+    )  # fmt: skip
+    result = json.loads(out.read_text())
+    (row,) = result["rows"]
+    assert result["baseline"] == str(slow) and row["seeds"] == 2 and row["rounds"] >= 2
+    assert row["baseline_ms"] >= 50 > row["this_ms"]  # per group update
+    assert row["time_ratio_quartiles"][1] < 1
+    with pytest.raises(SystemExit):
+        seed_group.main(["--against", str(tmp_path / "none.py"), "--out", str(out)])
+    assert "no such file" in capsys.readouterr().err
