@@ -180,37 +180,43 @@ def run(algorithms, seeds, threads, device, seconds: float, repeats: int = 1) ->
     return {"matmul_peak_gflops": peak, "rows": rows}
 
 
-def streams_cost(algorithms, seeds, threads, device, seconds: float) -> dict:
-    """A group with its per-seed random streams (as the recipe builds it) against the same
-    group drawing each random tensor as one call from the process's shared stream, timed
-    in the same interleaved rounds: what the streams cost."""
-    rows = []
+def _settings(algorithms, seeds, threads, device):
+    """Each ``(threads, algorithm, S)`` in turn, with torch's CPU threads set to it."""
     for n_threads in threads:
         if device.type == "cpu":
             torch.set_num_threads(n_threads)
         for algorithm in algorithms:
             for S in seeds:
-                own, _ = group_case(algorithm, S, device)
-                shared, group = group_case(algorithm, S, device)
-                group.streams = None
-                if group.world_model is not None:
-                    group.world_model.draw = _gaussian_draw(None)
-                measure([own, shared], device, seconds, rounds=7)
-                row = {
-                    "algorithm": algorithm,
-                    "threads": n_threads,
-                    "seeds": S,
-                    "own_streams_ms": own.seconds * 1e3,
-                    "shared_stream_ms": shared.seconds * 1e3,
-                    "ratio": own.seconds / shared.seconds,
-                }
-                rows.append(row)
-                print(
-                    f"{algorithm:5s} threads={n_threads} S={S}: own streams "
-                    f"{row['own_streams_ms']:.1f} ms, one shared stream "
-                    f"{row['shared_stream_ms']:.1f} ms, ratio {row['ratio']:.3f}",
-                    flush=True,
-                )
+                yield n_threads, algorithm, S
+
+
+def streams_cost(algorithms, seeds, threads, device, seconds: float) -> dict:
+    """A group with its per-seed random streams (as the recipe builds it) against the same
+    group drawing each random tensor as one call from the process's shared stream, timed
+    in the same interleaved rounds: what the streams cost."""
+    rows = []
+    for n_threads, algorithm, S in _settings(algorithms, seeds, threads, device):
+        own, _ = group_case(algorithm, S, device)
+        shared, group = group_case(algorithm, S, device)
+        group.streams = None
+        if group.world_model is not None:
+            group.world_model.draw = _gaussian_draw(None)
+        measure([own, shared], device, seconds, rounds=7)
+        row = {
+            "algorithm": algorithm,
+            "threads": n_threads,
+            "seeds": S,
+            "own_streams_ms": own.seconds * 1e3,
+            "shared_stream_ms": shared.seconds * 1e3,
+            "ratio": own.seconds / shared.seconds,
+        }
+        rows.append(row)
+        print(
+            f"{algorithm:5s} threads={n_threads} S={S}: own streams "
+            f"{row['own_streams_ms']:.1f} ms, one shared stream "
+            f"{row['shared_stream_ms']:.1f} ms, ratio {row['ratio']:.3f}",
+            flush=True,
+        )
     return {"rows": rows}
 
 
@@ -223,54 +229,48 @@ def against(path: Path, algorithms, seeds, threads, device, seconds: float) -> d
     baseline = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(baseline)
     rows = []
-    for n_threads in threads:
-        if device.type == "cpu":
-            torch.set_num_threads(n_threads)
-        for algorithm in algorithms:
-            for S in seeds:
-                mine, _ = group_case(algorithm, S, device)
-                current, trainers.SeedGroup = trainers.SeedGroup, baseline.SeedGroup
-                try:  # make_seed_group builds trainers.SeedGroup
-                    theirs, built = group_case(algorithm, S, device)
-                finally:
-                    trainers.SeedGroup = current
-                assert type(built) is baseline.SeedGroup
-                for case in (mine, theirs):  # warm-up: optimiser moments, allocator
-                    for _ in range(3):
-                        case.step()
-                times = {"this": [], "baseline": []}
-                end, order = (
-                    time.perf_counter() + 2 * seconds,
-                    [("this", mine), ("baseline", theirs)],
-                )
-                while time.perf_counter() < end:
-                    for name, case in order:
-                        sync(device)
-                        start = time.perf_counter()
-                        for _ in range(3):
-                            case.step()
-                        sync(device)
-                        times[name].append((time.perf_counter() - start) / 3)
-                    order.reverse()
-                ratios = [a / b for a, b in zip(times["this"], times["baseline"], strict=True)]
-                q1, median, q3 = statistics.quantiles(ratios, n=4)
-                row = {
-                    "algorithm": algorithm,
-                    "threads": n_threads,
-                    "seeds": S,
-                    "rounds": len(ratios),
-                    "this_ms": statistics.median(times["this"]) * 1e3,
-                    "baseline_ms": statistics.median(times["baseline"]) * 1e3,
-                    "time_ratio": median,
-                    "time_ratio_quartiles": [q1, q3],
-                }
-                rows.append(row)
-                print(
-                    f"{algorithm:5s} threads={n_threads} S={S}: this {row['this_ms']:.1f} ms, "
-                    f"baseline {row['baseline_ms']:.1f} ms per group update; paired ratio "
-                    f"{median:.3f} (quartiles {q1:.3f}-{q3:.3f}, {len(ratios)} rounds)",
-                    flush=True,
-                )
+    for n_threads, algorithm, S in _settings(algorithms, seeds, threads, device):
+        mine, _ = group_case(algorithm, S, device)
+        current, trainers.SeedGroup = trainers.SeedGroup, baseline.SeedGroup
+        try:  # make_seed_group builds trainers.SeedGroup
+            theirs, built = group_case(algorithm, S, device)
+        finally:
+            trainers.SeedGroup = current
+        assert type(built) is baseline.SeedGroup
+        for case in (mine, theirs):  # warm-up: optimiser moments, allocator
+            for _ in range(3):
+                case.step()
+        times = {"this": [], "baseline": []}
+        order = [("this", mine), ("baseline", theirs)]
+        end = time.perf_counter() + 2 * seconds
+        while time.perf_counter() < end:
+            for name, case in order:
+                sync(device)
+                start = time.perf_counter()
+                for _ in range(3):
+                    case.step()
+                sync(device)
+                times[name].append((time.perf_counter() - start) / 3)
+            order.reverse()
+        ratios = [a / b for a, b in zip(times["this"], times["baseline"], strict=True)]
+        q1, median, q3 = statistics.quantiles(ratios, n=4)
+        row = {
+            "algorithm": algorithm,
+            "threads": n_threads,
+            "seeds": S,
+            "rounds": len(ratios),
+            "this_ms": statistics.median(times["this"]) * 1e3,
+            "baseline_ms": statistics.median(times["baseline"]) * 1e3,
+            "time_ratio": median,
+            "time_ratio_quartiles": [q1, q3],
+        }
+        rows.append(row)
+        print(
+            f"{algorithm:5s} threads={n_threads} S={S}: this {row['this_ms']:.1f} ms, "
+            f"baseline {row['baseline_ms']:.1f} ms per group update; paired ratio "
+            f"{median:.3f} (quartiles {q1:.3f}-{q3:.3f}, {len(ratios)} rounds)",
+            flush=True,
+        )
     return {"baseline": str(path), "rows": rows}
 
 
