@@ -124,8 +124,9 @@ class _Linear:
     layer's bias as ``b + owed w``. That is one pass (the clamp) where ``bias add`` and
     ``relu`` take two. At S = 8 it spares five of the value target's passes over
     13.6 MB tensors (``benchmarks/README.md``, the seed-group section). The product is the
-    same up to rounding; outputs of a group of one are never this large, so a group of
-    one still rounds as its single run does."""
+    same up to rounding. At the default sizes a group of one's outputs stay under 2 MiB,
+    so it still rounds as its single run does (with a larger batch or network, this path
+    and the in-place bias add below round otherwise than its learner's ``baddbmm``)."""
 
     __slots__ = ("weight", "bias", "activation", "output_major")
 
