@@ -123,63 +123,6 @@ def aten_calls(case: Case, steps: int = 3) -> float:
     return sum(mode.counts.values()) / steps
 
 
-def run(algorithms, seeds, threads, device, seconds: float, repeats: int = 1) -> dict:
-    peak = {}
-    rows = []
-    for n_threads in threads:
-        if device.type == "cpu":
-            torch.set_num_threads(n_threads)
-        peak[n_threads] = matmul_peak(device)
-        for algorithm in algorithms:
-            for S in seeds:
-                separate = separate_case(algorithm, S, device)
-                group, _ = group_case(algorithm, S, device)
-                group.count_flops()
-                calls = aten_calls(group)
-                separate_calls = aten_calls(separate)
-                runs = []  # (separate seconds, group seconds) of each repeat
-                for _ in range(repeats):
-                    measure([separate, group], device, seconds)
-                    sync(device)
-                    runs.append((separate.seconds, group.seconds))
-                ratios = [sep / grp for sep, grp in runs]
-                # the repeat with the median ratio (the lower one of an even count)
-                median = sorted(range(repeats), key=ratios.__getitem__)[(repeats - 1) // 2]
-                sep_s, group_s = runs[median]
-                per_seed_group = S / group_s
-                per_seed_separate = S / sep_s
-                row = {
-                    "algorithm": algorithm,
-                    "threads": n_threads,
-                    "seeds": S,
-                    "separate_per_seed_updates_per_s": per_seed_separate,
-                    "group_per_seed_updates_per_s": per_seed_group,
-                    "speedup": per_seed_group / per_seed_separate,
-                    "speedup_repeats": ratios,
-                    "group_ms": group_s * 1e3,
-                    "separate_ms": sep_s * 1e3,
-                    "group_aten_calls": calls,
-                    "separate_aten_calls": separate_calls,
-                    "group_gflop": group.flops / 1e9,
-                    "group_share_of_peak": group.flops / group_s / 1e9 / peak[n_threads],
-                    "separate_share_of_peak": group.flops / sep_s / 1e9 / peak[n_threads],
-                }
-                rows.append(row)
-                spread = (
-                    f" (repeats {', '.join(f'{r:.2f}' for r in ratios)})" if repeats > 1 else ""
-                )
-                print(
-                    f"{algorithm:5s} threads={n_threads} S={S}: per-seed updates/s "
-                    f"separate {per_seed_separate:7.1f}  group {per_seed_group:7.1f}  "
-                    f"x{row['speedup']:.2f}{spread}   ATen calls/update {calls:.0f} "
-                    f"(separate {separate_calls:.0f})   "
-                    f"{row['group_share_of_peak']:.1%} of peak "
-                    f"(separate {row['separate_share_of_peak']:.1%})",
-                    flush=True,
-                )
-    return {"matmul_peak_gflops": peak, "rows": rows}
-
-
 def _settings(algorithms, seeds, threads, device):
     """Each ``(threads, algorithm, S)`` in turn, with torch's CPU threads set to it."""
     for n_threads in threads:
@@ -188,6 +131,58 @@ def _settings(algorithms, seeds, threads, device):
         for algorithm in algorithms:
             for S in seeds:
                 yield n_threads, algorithm, S
+
+
+def run(algorithms, seeds, threads, device, seconds: float, repeats: int = 1) -> dict:
+    peak = {}
+    rows = []
+    for n_threads, algorithm, S in _settings(algorithms, seeds, threads, device):
+        if n_threads not in peak:  # measured once per thread count, at that count
+            peak[n_threads] = matmul_peak(device)
+        separate = separate_case(algorithm, S, device)
+        group, _ = group_case(algorithm, S, device)
+        group.count_flops()
+        calls = aten_calls(group)
+        separate_calls = aten_calls(separate)
+        runs = []  # (separate seconds, group seconds) of each repeat
+        for _ in range(repeats):
+            measure([separate, group], device, seconds)
+            sync(device)
+            runs.append((separate.seconds, group.seconds))
+        ratios = [sep / grp for sep, grp in runs]
+        # the repeat with the median ratio (the lower one of an even count)
+        median = sorted(range(repeats), key=ratios.__getitem__)[(repeats - 1) // 2]
+        sep_s, group_s = runs[median]
+        per_seed_group = S / group_s
+        per_seed_separate = S / sep_s
+        row = {
+            "algorithm": algorithm,
+            "threads": n_threads,
+            "seeds": S,
+            "separate_per_seed_updates_per_s": per_seed_separate,
+            "group_per_seed_updates_per_s": per_seed_group,
+            "speedup": per_seed_group / per_seed_separate,
+            "speedup_repeats": ratios,
+            "group_ms": group_s * 1e3,
+            "separate_ms": sep_s * 1e3,
+            "group_aten_calls": calls,
+            "separate_aten_calls": separate_calls,
+            "group_gflop": group.flops / 1e9,
+            "group_share_of_peak": group.flops / group_s / 1e9 / peak[n_threads],
+            "separate_share_of_peak": group.flops / sep_s / 1e9 / peak[n_threads],
+        }
+        rows.append(row)
+        spread = f" (repeats {', '.join(f'{r:.2f}' for r in ratios)})" if repeats > 1 else ""
+        print(
+            f"{algorithm:5s} threads={n_threads} S={S}: per-seed updates/s "
+            f"separate {per_seed_separate:7.1f}  group {per_seed_group:7.1f}  "
+            f"x{row['speedup']:.2f}{spread}   ATen calls/update {calls:.0f} "
+            f"(separate {separate_calls:.0f})   "
+            f"{row['group_share_of_peak']:.1%} of peak "
+            f"(separate {row['separate_share_of_peak']:.1%})",
+            flush=True,
+        )
+    return {"matmul_peak_gflops": peak, "rows": rows}
 
 
 def streams_cost(algorithms, seeds, threads, device, seconds: float) -> dict:

@@ -33,10 +33,7 @@ def make_collector(cfg: DictConfig, env, policy, device, frames_done: int = 0):
     exact. :func:`push_policy_weights` sends the learner's weights to the workers.
     """
     total = cfg.collector.total_frames
-    # a run collects whole batches from frame 0, the last one past the total where the
-    # total is not a whole number of batches (TorchRL's collectors round it up): a resumed
-    # run collects the batches the uninterrupted run would have, not the bare remainder
-    grid = min(cfg.collector.frames_per_batch, total)
+    grid = min(cfg.collector.frames_per_batch, total)  # the uninterrupted run's batches
     remaining = -(-total // grid) * grid - frames_done
     common = dict(
         frames_per_batch=min(grid, remaining),
