@@ -15,6 +15,7 @@ from test_seed_group_recipe import scalars
 from torchrl.envs.utils import RandomPolicy
 
 from torchrl_rave.envs import ActuatorNoise, EpisodeReplay, EpisodeReplayError, import_env_family
+from torchrl_rave.recipe import loop
 from torchrl_rave.recipe.agent import make_env
 from torchrl_rave.recipe.checkpoint import RunCheckpoint
 from torchrl_rave.recipe.collect import make_collector
@@ -180,13 +181,18 @@ CHEETAH = [*TINY, "algorithm=ddpg", "env.name=HalfCheetah-v5", "env.action_noise
            "threads=1"]  # fmt: skip
 
 
-@pytest.mark.parametrize("group", [None, [0, 1]], ids=["run", "group"])
-def test_a_run_killed_mid_episode_resumes_as_if_never_stopped(group, tmp_path):
-    """SIGKILL a run (or a seed group) after its first checkpoint and resume it: every
-    metric it logs (the training episodes' returns, the losses, the evaluations) equals
-    that of the same run never stopped, to the last bit; the checkpoint it resumed from
-    kept the episode."""
+@pytest.mark.parametrize(
+    "group, workers", [(None, 0), ([0, 1], 0), (None, 2)], ids=["run", "group", "process"]
+)
+def test_a_run_killed_mid_episode_resumes_as_if_never_stopped(group, workers, tmp_path):
+    """SIGKILL a run (or a seed group, or a run of two worker processes) after its first
+    checkpoint and resume it: every metric it logs (the training episodes' returns, the
+    losses, the evaluations) equals that of the same run never stopped, to the last bit;
+    the checkpoint it resumed from kept the episode (each worker's, with its random
+    state, which draws its exploration noise)."""
     overrides = CHEETAH if group is None else [*CHEETAH, f"seeds={group}"]
+    if workers:
+        overrides = [*overrides, "collector.backend=process", f"collector.num_workers={workers}"]
     runs = [""] if group is None else [f"seed{s}" for s in group]
     whole = tmp_path / "whole"
     train(make_cfg(*overrides), str(whole))
@@ -195,7 +201,12 @@ def test_a_run_killed_mid_episode_resumes_as_if_never_stopped(group, tmp_path):
     assert frames in (300, 600)
     for c in (RunCheckpoint(killed / run) for run in runs):
         episode = c.read("episode", c.root / f"checkpoint-{frames:012d}")
-        assert episode["kept"] and len(episode["actions"]) == frames % 400
+        assert episode["kept"]
+        if workers:  # each worker took half of every batch's steps
+            assert [len(w["actions"]) for w in episode["workers"]] == [frames // 2 % 400] * 2
+            assert not torch.equal(*(w["rng"] for w in episode["workers"]))
+        else:
+            assert len(episode["actions"]) == frames % 400
     with warnings.catch_warnings():
         warnings.simplefilter("error", EpisodeNotRestored)
         train(make_cfg(*overrides, f"resume={killed}"), "unused")
@@ -213,7 +224,31 @@ def test_a_run_killed_mid_episode_resumes_as_if_never_stopped(group, tmp_path):
                 np.testing.assert_equal(values, values[:1] * len(values), f"{name} {step}")
             resumed[name] = [(step, values[-1]) for step, values in by_step.items()]
         np.testing.assert_equal(resumed, expected)
-        assert [s for s, _ in expected["train/episode_reward"]] == [400, 800]
+        # a worker's episode ends at its own 400th step
+        ends = [800] if workers else [400, 800]
+        assert [s for s, _ in expected["train/episode_reward"]] == ends
+
+
+def test_workers_behind_the_learners_weights_resume_at_a_new_episode(tmp_path, monkeypatch):
+    """A CPU learner's process workers act with its own weights (in shared memory), so
+    their episodes are kept whatever ``collector.weight_sync_every``. Workers that hold
+    copies (a GPU learner's, here made so) and act with older weights than the learner's
+    keep no episode: a resumed run pushes the current weights, so it could not act as the
+    run never stopped. It resumes at a new episode and says why."""
+    overrides = [*TINY, "algorithm=ddpg", "collector.backend=process", "collector.num_workers=1",
+                 "collector.weight_sync_every=1000", "replay_buffer.size=1000"]  # fmt: skip
+    shared = tmp_path / "shared"
+    train(make_cfg(*overrides), str(shared))
+    c = RunCheckpoint(shared)
+    assert c.read("episode", c.root / "checkpoint-000000000200")["kept"]
+    monkeypatch.setattr(loop, "workers_share_weights", lambda collector, policy: False)
+    copies = tmp_path / "copies"
+    train(make_cfg(*overrides), str(copies))
+    c = RunCheckpoint(copies)
+    episode = c.read("episode", c.root / "checkpoint-000000000200")
+    assert not episode["kept"] and "weight_sync_every" in episode["why"]
+    with pytest.warns(EpisodeNotRestored, match="older weights than the learner's"):
+        train(make_cfg(*overrides, "collector.total_frames=500", f"resume={copies}"), "unused")
 
 
 def test_a_checkpoint_without_an_episode_resumes_at_a_new_one(tmp_path, monkeypatch):

@@ -16,6 +16,7 @@ from torchrl.collectors import Collector, MultiSyncCollector
 
 from torchrl_rave.recipe.agent import make_actor, make_env
 from torchrl_rave.recipe.config import ALGORITHMS, check_ray_fits
+from torchrl_rave.recipe.episode import EpisodeWorkerCollector
 
 
 def make_collector(cfg: DictConfig, env, policy, device, frames_done: int = 0):
@@ -55,11 +56,13 @@ def make_collector(cfg: DictConfig, env, policy, device, frames_done: int = 0):
         collector = make_ray_collector(cfg, common)
     else:
         collector = MultiSyncCollector(
-            [functools.partial(make_env, cfg, cpu)] * workers,
+            [functools.partial(make_env, cfg, cpu, record_episode=True)] * workers,
             policy,
             device=cpu,  # actors run the exploration policy on the CPU
             storing_device=cpu,
             cat_results="stack",
+            # each worker keeps its episode for the checkpoints (recipe.episode)
+            collector_class=EpisodeWorkerCollector,
             **common,
         )
     # distinct, reproducible streams per worker; a resumed run does not replay old episodes
@@ -146,6 +149,17 @@ def push_policy_weights(collector, policy) -> None:
     if isinstance(collector, Collector):
         return
     collector.update_policy_weights_(TensorDict.from_module(policy).data)
+
+
+def workers_share_weights(collector, policy) -> bool:
+    """Whether ``collector``'s worker processes act with ``policy``'s own tensors, as a
+    ``MultiSyncCollector`` of a CPU policy does (it moves them into shared memory): the
+    workers then see every update at once, pushed or not. A GPU policy's workers (and
+    Ray's) hold copies, which change only on a push."""
+    if not isinstance(collector, MultiSyncCollector):
+        return False
+    tensors = [*policy.parameters(), *policy.buffers()]
+    return bool(tensors) and all(t.is_shared() for t in tensors)
 
 
 class CollectorFailure(RuntimeError):

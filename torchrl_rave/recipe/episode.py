@@ -1,12 +1,14 @@
 """The training episode in progress as a checkpoint component, so that a resumed run
-continues the very episode it was in (``collector.backend=direct``).
+continues the very episode it was in (``collector.backend=direct`` or ``process``).
 
 Two things carry an episode from one batch to the next: the env (its simulator, wrappers
 and random generators, rebuilt by :class:`~torchrl_rave.envs.EpisodeReplay`) and
 TorchRL's collector, which keeps the step it will act on next (the observation, the step
 count, the episode's return so far). :class:`EpisodeCheckpoint` saves both, and restores
-both into a new collector. Resumed this way, a run gives the numbers of the run that was
-never stopped.
+both into a new collector. A worker process of a ``process`` collector holds its own env,
+collector step and random state (which draws its exploration noise);
+:class:`EpisodeWorkerCollector` hands the three to the learner's process and takes them
+back. Resumed this way, a run gives the numbers of the run that was never stopped.
 """
 
 from __future__ import annotations
@@ -16,11 +18,17 @@ import warnings
 import torch
 from tensordict import TensorDict
 from torchrl.checkpoint import GlobalRNGState
-from torchrl.collectors import Collector
+from torchrl.collectors import Collector, MultiSyncCollector
 
 from torchrl_rave.envs.episode_replay import EpisodeReplay, EpisodeReplayError
 
-__all__ = ["EpisodeCheckpoint", "EpisodeNotRestored", "episode_recorder", "resume_collecting"]
+__all__ = [
+    "EpisodeCheckpoint",
+    "EpisodeNotRestored",
+    "EpisodeWorkerCollector",
+    "episode_recorder",
+    "resume_collecting",
+]
 
 
 class EpisodeNotRestored(UserWarning):
@@ -57,15 +65,21 @@ class EpisodeCheckpoint:
     ``attach(None, None)`` says that the run starts new episodes next (a curriculum's new
     stage, in new envs), which a resumed run then does too.
     :meth:`load_state_dict` keeps a saved episode until :meth:`restore` rebuilds it in
-    a new collector. An episode that cannot be saved (a worker-process or Ray collector,
-    whose envs live in other processes; an env without an ``EpisodeReplay``) is saved
-    as ``{"kept": False}``.
+    a new collector: the direct collector's, or each worker's of a ``MultiSyncCollector``
+    of :class:`EpisodeWorkerCollector` workers. An episode that cannot be saved (a Ray
+    collector, whose envs live in its actors; an env without an ``EpisodeReplay``) is
+    saved as ``{"kept": False}``, with why.
     """
 
     def __init__(self) -> None:
         self.env = None
         self.collector = None
         self.saved: dict | None = None
+        #: whether the workers of a ``process`` collector act with weights older than the
+        #: learner's (set by the training loop: copies, a GPU learner's, not pushed since
+        #: the last update); their episode is then not kept, as a resumed run pushes the
+        #: current weights
+        self.workers_behind = False
 
     def attach(self, env, collector) -> None:
         self.env, self.collector = env, collector
@@ -73,80 +87,169 @@ class EpisodeCheckpoint:
     def state_dict(self) -> dict:
         if self.env is None and self.collector is None:  # detached: new episodes next
             return {"kept": False, "new_episode": True}
-        recorder = episode_recorder(self.env)
-        carrier = _carrier(self.collector)
-        if recorder is None or carrier is None:
-            return {"kept": False, "why": "the collector's envs live in worker processes"}
-        episode = recorder.episode_state()
-        if episode is None:
-            return {"kept": False, "why": f"the episode was not recorded ({recorder.why_not})"}
-        keys = sorted(carrier.keys(include_nested=True, leaves_only=True), key=str)
-        return {
-            "kept": True,
-            "reset": episode["reset"],
-            "actions": torch.from_numpy(episode["actions"]),
-            "dtype": episode["dtype"],
-            "carrier_keys": [list(k) if isinstance(k, tuple) else [k] for k in keys],
-            "carrier_values": [carrier.get(k).detach().cpu().clone() for k in keys],
-            "traj_id": _traj_pool_state(self.collector),
-        }
+        if isinstance(self.collector, MultiSyncCollector):
+            return self._workers_state()
+        state = episode_state(self.env, self.collector)
+        if state["kept"]:
+            state["traj_id"] = _traj_pool_state(self.collector)
+        return state
+
+    def _workers_state(self) -> dict:
+        if self.workers_behind:
+            return {"kept": False, "why": "the workers acted with older weights than the "
+                    "learner's (collector.weight_sync_every > 1)"}  # fmt: skip
+        try:
+            states = self.collector.map_fn("episode_state")
+        except Exception as err:  # noqa: BLE001 (the checkpoint is written all the same)
+            return {"kept": False, "why": f"the workers gave no episode ({type(err).__name__}: "
+                    f"{err})"}  # fmt: skip
+        for i, state in enumerate(states):
+            if not state["kept"]:
+                return {"kept": False, "why": f"worker {i}: {state['why']}"}
+        pool = getattr(self.collector, "_traj_pool", None)  # shared by the workers
+        traj_id = None if pool is None else pool.state_dict()["traj_id"]
+        return {"kept": True, "workers": states, "traj_id": traj_id}
 
     def load_state_dict(self, state: dict) -> None:
         self.saved = state
 
     def restore(self, env, collector) -> str | None:
-        """Rebuilds the saved episode in ``env`` and hands ``collector`` its next step;
-        returns ``None`` when it did, or why it could not (then ``env`` and
-        ``collector`` must be reset: the caller does). Uses the saved episode once."""
+        """Rebuilds the saved episode in ``env`` and hands ``collector`` its next step (a
+        ``process`` collector: each worker its own); returns ``None`` when it did, or why
+        it could not (then ``env`` and ``collector`` must be reset: the caller does). Uses
+        the saved episode once."""
         saved, self.saved = self.saved, None
         if saved is None:
             return "its checkpoint holds no episode (written before episodes were kept)"
         if not saved.get("kept"):
             return f"its checkpoint holds no episode: {saved.get('why', 'not kept')}"
-        recorder, carrier = episode_recorder(env), _carrier(collector)
-        if recorder is None or carrier is None:
-            return "this env or collector cannot take an episode back"
-        try:
-            options = saved["reset"]["options"]
-            keys = [tuple(k) if len(k) > 1 else k[0] for k in saved["carrier_keys"]]
-            target = dict(zip(keys, saved["carrier_values"], strict=True))
-            state = {"reset": saved["reset"], "actions": saved["actions"].numpy(),
-                     "dtype": saved["dtype"]}  # fmt: skip
-        except (AttributeError, KeyError, TypeError, ValueError) as err:
-            return f"its episode record is unusable ({type(err).__name__}: {err})"
-        if options is not None:
-            # the recipe resets without options; a run directory's values are not handed
-            # to the env, which may open them as files (recipe.trust)
-            return "its episode began with reset options, which the recipe never passes"
-        if not all(isinstance(v, torch.Tensor) for v in target.values()):
-            return "its episode record is unusable (a collector entry is not a tensor)"
-        # a new collector's step holds what a reset gives; the saved one also what the
-        # policy wrote into it at the last step (overwritten at the next, but kept as is)
-        now = carrier.keys(include_nested=True, leaves_only=True)
-        missing = set(now) - set(keys)
-        if missing:
-            return f"the checkpoint's collector step lacks {sorted(map(str, missing))}"
-        for key in now:
-            value, current = target[key], carrier.get(key)
-            if (value.shape, value.dtype) != (current.shape, current.dtype):
-                return f"the checkpoint's collector step holds another {key!r}"
-        try:
-            obs = recorder.replay(state)
-        except EpisodeReplayError as err:
-            return str(err)
-        observation = target.get("observation")
-        if observation is not None:
-            replayed = torch.as_tensor(obs).to(observation.dtype).reshape(observation.shape)
-            if not torch.equal(replayed, observation):
-                return "the replayed episode does not end at the checkpoint's observation"
-        for key, value in target.items():
-            current = carrier.get(key, None)
-            device = current.device if current is not None else carrier.device or "cpu"
-            carrier.set(key, value.to(device))
-        if saved.get("traj_id") is not None and getattr(collector, "track_traj_ids", False):
+        workers = saved.get("workers")
+        if isinstance(collector, MultiSyncCollector):
+            if not isinstance(workers, list) or len(workers) != collector.num_workers:
+                count = len(workers) if isinstance(workers, list) else "no"
+                return (f"its checkpoint holds {count} workers' episodes, the collector has "
+                        f"{collector.num_workers} workers")  # fmt: skip
+            try:
+                answers = collector.map_fn("continue_episode", [(w,) for w in workers])
+            except AttributeError:
+                return "the collector's workers cannot take an episode back"
+            for i, why in enumerate(answers):
+                if why is not None:
+                    return f"worker {i}: {why}"
+            pool = getattr(collector, "_traj_pool", None)
+            if pool is not None and isinstance(saved.get("traj_id"), torch.Tensor):
+                pool.load_state_dict({"traj_id": saved["traj_id"]})
+            return None
+        if workers is not None:
+            return "its checkpoint holds the episodes of worker processes"
+        why = continue_episode(saved, env, collector)
+        if (
+            why is None
+            and saved.get("traj_id") is not None
+            and getattr(collector, "track_traj_ids", False)
+        ):
             # the next trajectory's id, as the collector that was stopped would give it
             collector._traj_pool.load_state_dict({"traj_id": saved["traj_id"]})
-        return None
+        return why
+
+
+def episode_state(env, collector) -> dict:
+    """The episode in progress of ``env``, stepped by the in-process ``collector``, as
+    plain data and tensors: ``{"kept": True, ...}`` with the episode's record and the
+    collector's next step, or ``{"kept": False, "why": ...}``."""
+    recorder = episode_recorder(env)
+    carrier = _carrier(collector)
+    if recorder is None or carrier is None:
+        return {"kept": False, "why": "the collector's envs live in other processes"}
+    episode = recorder.episode_state()
+    if episode is None:
+        return {"kept": False, "why": f"the episode was not recorded ({recorder.why_not})"}
+    keys = sorted(carrier.keys(include_nested=True, leaves_only=True), key=str)
+    return {
+        "kept": True,
+        "reset": episode["reset"],
+        "actions": torch.from_numpy(episode["actions"]),
+        "dtype": episode["dtype"],
+        "carrier_keys": [list(k) if isinstance(k, tuple) else [k] for k in keys],
+        "carrier_values": [carrier.get(k).detach().cpu().clone() for k in keys],
+    }
+
+
+def continue_episode(saved: dict, env, collector) -> str | None:
+    """Rebuilds the episode of ``saved`` (from :func:`episode_state`) in ``env`` and sets
+    ``collector``'s next step to the saved one; returns ``None`` when it did, or why it
+    could not."""
+    recorder, carrier = episode_recorder(env), _carrier(collector)
+    if recorder is None or carrier is None:
+        return "this env or collector cannot take an episode back"
+    try:
+        options = saved["reset"]["options"]
+        keys = [tuple(k) if len(k) > 1 else k[0] for k in saved["carrier_keys"]]
+        target = dict(zip(keys, saved["carrier_values"], strict=True))
+        state = {"reset": saved["reset"], "actions": saved["actions"].numpy(),
+                 "dtype": saved["dtype"]}  # fmt: skip
+    except (AttributeError, KeyError, TypeError, ValueError) as err:
+        return f"its episode record is unusable ({type(err).__name__}: {err})"
+    if options is not None:
+        # the recipe resets without options; a run directory's values are not handed
+        # to the env, which may open them as files (recipe.trust)
+        return "its episode began with reset options, which the recipe never passes"
+    if not all(isinstance(v, torch.Tensor) for v in target.values()):
+        return "its episode record is unusable (a collector entry is not a tensor)"
+    # a new collector's step holds what a reset gives; the saved one also what the
+    # policy wrote into it at the last step (overwritten at the next, but kept as is)
+    now = carrier.keys(include_nested=True, leaves_only=True)
+    missing = set(now) - set(keys)
+    if missing:
+        return f"the checkpoint's collector step lacks {sorted(map(str, missing))}"
+    for key in now:
+        value, current = target[key], carrier.get(key)
+        if (value.shape, value.dtype) != (current.shape, current.dtype):
+            return f"the checkpoint's collector step holds another {key!r}"
+    try:
+        obs = recorder.replay(state)
+    except EpisodeReplayError as err:
+        return str(err)
+    observation = target.get("observation")
+    if observation is not None:
+        replayed = torch.as_tensor(obs).to(observation.dtype).reshape(observation.shape)
+        if not torch.equal(replayed, observation):
+            return "the replayed episode does not end at the checkpoint's observation"
+    for key, value in target.items():
+        current = carrier.get(key, None)
+        device = current.device if current is not None else carrier.device or "cpu"
+        carrier.set(key, value.to(device))
+    return None
+
+
+class EpisodeWorkerCollector(Collector):
+    """TorchRL's ``Collector`` as the worker of a ``MultiSyncCollector``
+    (``collector_class=``) whose episode a checkpoint can keep: its env must be built with
+    ``record_episode=True``. The learner's process calls the two methods below in every
+    worker through the collector's ``map_fn``, between batches, while the workers wait.
+
+    Besides the episode and the collector's next step, a worker keeps the state of its
+    process's torch generator, from which its policy draws the exploration noise (and
+    the random actions of the first frames).
+    """
+
+    def episode_state(self) -> dict:
+        """:func:`episode_state` of this worker, with its torch random state (``rng``)."""
+        state = episode_state(self.env, self)
+        if state["kept"]:
+            state["rng"] = torch.get_rng_state()
+        return state
+
+    def continue_episode(self, saved: dict) -> str | None:
+        """:func:`continue_episode` in this worker, then its torch random state set back
+        to the saved one; returns why not, or ``None``."""
+        rng = saved.get("rng") if isinstance(saved, dict) else None
+        if not isinstance(rng, torch.Tensor) or rng.dtype != torch.uint8 or rng.dim() != 1:
+            return "its episode record holds no usable random state of the worker"
+        why = continue_episode(saved, self.env, self)
+        if why is None:
+            torch.set_rng_state(rng)
+        return why
 
 
 def resume_collecting(
@@ -159,7 +262,7 @@ def resume_collecting(
     continue_episode: bool,
 ) -> bool:
     """What a resumed run does with its first collector: continues the episode of the
-    checkpoint just loaded into ``episode`` (``continue_episode``, an in-process
+    checkpoint just loaded into ``episode`` (``continue_episode``: a direct or process
     collector); where it cannot (:class:`EpisodeNotRestored` says why), or where the run
     was about to start new episodes anyway, reseeds ``env`` with ``seed`` and starts a new
     episode. Then sets the random state back to ``rng_state``, the checkpoint's, whatever
@@ -183,5 +286,7 @@ def _restore_or_restart(episode: EpisodeCheckpoint, env, collector, seed: int) -
             stacklevel=3,
         )
     env.set_seed(seed)
+    if isinstance(collector, MultiSyncCollector):  # the workers' own envs and streams
+        collector.set_seed(seed)
     collector.reset()
     return False

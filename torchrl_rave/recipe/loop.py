@@ -45,6 +45,7 @@ from torchrl_rave.recipe.collect import (
     push_policy_weights,
     shutdown_on_error,
     stop_run,
+    workers_share_weights,
 )
 from torchrl_rave.recipe.config import (
     apply_process_settings,
@@ -92,8 +93,9 @@ def _train(cfg: DictConfig, run_dir: str) -> dict[str, float]:
     torch.manual_seed(cfg.env.seed)
 
     # Environments, agent, replay buffer; an in-process collector's env keeps its episode
-    # for the checkpoints
+    # for the checkpoints (a process collector's workers keep theirs)
     record = cfg.collector.backend == "direct"
+    keeps_episode = cfg.collector.backend in ("direct", "process")
     env, eval_env = make_env(cfg, device, record_episode=record), make_env(cfg, device)
     agent = make_agent(cfg, env, device)
     rb = make_replay_buffer(cfg, device)
@@ -167,11 +169,13 @@ def _train(cfg: DictConfig, run_dir: str) -> dict[str, float]:
             if rng_at_load is not None:  # the first collector of a resumed run
                 seed = cfg.env.seed + counters["frames"]
                 resume_collecting(
-                    episode, env, collector, seed, rng_at_load, continue_episode=record
+                    episode, env, collector, seed, rng_at_load, continue_episode=keeps_episode
                 )
                 rng_at_load = None
             next_stage = False
             synced_at = counters["updates"]  # the workers start with the current weights
+            episode.workers_behind = False
+            shared = workers_share_weights(collector, agent.policy)
             t_collect = time.perf_counter()
             batches = guarded_batches(
                 collector, cfg, save_after_failure, lambda: counters["frames"], run_dir
@@ -207,6 +211,7 @@ def _train(cfg: DictConfig, run_dir: str) -> dict[str, float]:
                 if counters["updates"] - synced_at >= cfg.collector.weight_sync_every:
                     push_policy_weights(collector, agent.policy)
                     synced_at = counters["updates"]
+                episode.workers_behind = counters["updates"] != synced_at and not shared
 
                 frames_now = counters["frames"]
                 fps = (frames_now - frames_at_start) / (time.perf_counter() - start)
