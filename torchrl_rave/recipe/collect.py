@@ -31,7 +31,9 @@ def make_collector(cfg: DictConfig, env, policy, device, frames_done: int = 0):
     :func:`make_ray_collector`). Workers build their own env from the config, run the
     exploration policy on the CPU and collect ``frames_per_batch / num_workers`` frames per
     batch; the batch holds every worker's share, so the learner's update-to-data ratio is
-    exact. :func:`push_policy_weights` sends the learner's weights to the workers.
+    exact. :func:`push_policy_weights` sends the learner's weights to the workers. A
+    ``process`` worker records its episode, for the checkpoints
+    (:class:`~torchrl_rave.recipe.episode.EpisodeWorkerCollector`).
     """
     total = cfg.collector.total_frames
     grid = min(cfg.collector.frames_per_batch, total)  # the uninterrupted run's batches

@@ -26,7 +26,9 @@ __all__ = [
     "EpisodeCheckpoint",
     "EpisodeNotRestored",
     "EpisodeWorkerCollector",
+    "continue_episode",
     "episode_recorder",
+    "episode_state",
     "resume_collecting",
 ]
 
