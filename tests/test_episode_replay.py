@@ -241,6 +241,15 @@ def test_workers_behind_the_learners_weights_resume_at_a_new_episode(tmp_path, m
     train(make_cfg(*overrides), str(shared))
     c = RunCheckpoint(shared)
     assert c.read("episode", c.root / "checkpoint-000000000200")["kept"]
+    # a workers' episode goes back to workers only, as many as kept it
+    for collector, why in [
+        (["collector.backend=direct", "collector.total_frames=500"],
+         "the episodes of worker processes"),
+        (["collector.num_workers=2", "collector.total_frames=600"],
+         "no workers' episodes, the collector has 2 workers"),
+    ]:  # fmt: skip
+        with pytest.warns(EpisodeNotRestored, match=why):
+            train(make_cfg(*overrides, *collector, f"resume={shared}"), "unused")
     monkeypatch.setattr(loop, "workers_share_weights", lambda collector, policy: False)
     copies = tmp_path / "copies"
     train(make_cfg(*overrides), str(copies))

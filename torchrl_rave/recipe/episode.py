@@ -133,8 +133,8 @@ class EpisodeCheckpoint:
                         f"{collector.num_workers} workers")  # fmt: skip
             try:
                 answers = collector.map_fn("continue_episode", [(w,) for w in workers])
-            except AttributeError:
-                return "the collector's workers cannot take an episode back"
+            except Exception as err:  # noqa: BLE001 (the run starts new episodes instead)
+                return f"the workers took no episode back ({type(err).__name__}: {err})"
             for i, why in enumerate(answers):
                 if why is not None:
                     return f"worker {i}: {why}"
