@@ -21,6 +21,7 @@ from torchrl_rave.recipe.agent import make_actor, make_env
 from torchrl_rave.recipe.checkpoint import RunCheckpoint
 from torchrl_rave.recipe.collect import CollectorFailure, make_collector, push_policy_weights
 from torchrl_rave.recipe.config import check_config
+from torchrl_rave.recipe.episode import EpisodeCheckpoint
 
 TESTS = Path(__file__).resolve().parent
 
@@ -93,6 +94,61 @@ def test_frames_from_every_worker_and_weight_push(backend):
         assert_workers_hold(after)
     finally:
         collector.shutdown()
+
+
+def test_ray_collectors_of_one_seed_collect_alike(local_ray):
+    """Two Ray collectors of one config collect the same first batch, exploration noise
+    included: each actor seeds its torch generator and resets from its seeded env (Ray's
+    own ``set_seed`` does neither, and an actor's first step acted from an unseeded
+    reset)."""
+    cfg = make_cfg(*TINY, "collector.backend=ray", "collector.num_workers=2",
+                   "algorithm=ddpg", "collector.init_random_frames=0")  # fmt: skip
+    cpu = torch.device("cpu")
+    env = make_env(cfg, cpu)
+    _, policy = make_actor(cfg, env, check_config(cfg))
+    batches = []
+    for _ in range(2):
+        collector = make_collector(cfg, env, policy, cpu)
+        try:
+            batches.append(next(iter(collector)))
+        finally:
+            collector.shutdown()
+    for key in ["observation", "action", ("next", "observation")]:
+        assert torch.equal(batches[0][key], batches[1][key]), key
+    assert not torch.equal(batches[0]["observation"][0], batches[0]["observation"][1])
+
+
+def test_a_checkpointed_episode_continues_in_new_workers(backend):
+    """Each worker's episode, next step and random state, saved between batches, go into
+    the workers of a new collector, which then collect the batch the first would have
+    collected next, to the last bit (exploration noise included: no random frames)."""
+    cfg = make_cfg(*TINY, *backend, "algorithm=ddpg", "env.name=HalfCheetah-v5",
+                   "env.action_noise=0.3", "collector.init_random_frames=0")  # fmt: skip
+    cpu = torch.device("cpu")
+    env = make_env(cfg, cpu)
+    _, policy = make_actor(cfg, env, check_config(cfg))
+    episode = EpisodeCheckpoint()
+    first = make_collector(cfg, env, policy, cpu)
+    try:
+        episode.attach(env, first)
+        batches = iter(first)
+        next(batches)
+        saved = episode.state_dict()
+        expected = next(batches)
+    finally:
+        first.shutdown()
+    assert saved["kept"] and [len(w["actions"]) for w in saved["workers"]] == [50, 50]
+    second = make_collector(cfg, env, policy, cpu, frames_done=100)
+    try:
+        episode.load_state_dict(saved)
+        assert episode.restore(env, second) is None
+        got = next(iter(second))
+    finally:
+        second.shutdown()
+    for key in ["observation", "action", ("next", "reward"), ("next", "observation"),
+                ("next", "step_count"), ("next", "episode_reward")]:  # fmt: skip
+        assert torch.equal(got[key], expected[key]), key
+    assert (got["next", "step_count"][:, 0] == 51).all()  # each worker's 51st step
 
 
 def test_rave_trains_with_two_workers(backend, tmp_path):

@@ -31,8 +31,8 @@ def make_collector(cfg: DictConfig, env, policy, device, frames_done: int = 0):
     :func:`make_ray_collector`). Workers build their own env from the config, run the
     exploration policy on the CPU and collect ``frames_per_batch / num_workers`` frames per
     batch; the batch holds every worker's share, so the learner's update-to-data ratio is
-    exact. :func:`push_policy_weights` sends the learner's weights to the workers. A
-    ``process`` worker records its episode, for the checkpoints
+    exact. :func:`push_policy_weights` sends the learner's weights to the workers. Each
+    worker records its episode, for the checkpoints
     (:class:`~torchrl_rave.recipe.episode.EpisodeWorkerCollector`).
     """
     total = cfg.collector.total_frames
@@ -84,9 +84,24 @@ def worker_policy(cfg: DictConfig):
         env.close()
 
 
-class RayWorkerCollector(Collector):
-    """TorchRL's ``Collector`` with a one-line repr: Ray prefixes every line a worker logs
-    with its actor's repr, which for a ``Collector`` spans the whole env and policy."""
+class RayWorkerCollector(EpisodeWorkerCollector):
+    """TorchRL's ``Collector`` as a Ray actor: it keeps its episode for the checkpoints
+    (:class:`~torchrl_rave.recipe.episode.EpisodeWorkerCollector`), seeds its process's
+    torch generator with its own seed, and has a one-line repr (Ray prefixes every line a
+    worker logs with its actor's repr, which for a ``Collector`` spans the whole env and
+    policy)."""
+
+    def set_seed(self, seed: int, static_seed: bool = False) -> int:
+        """Seeds the env, as ``Collector.set_seed`` does, then, as TorchRL does for a
+        ``MultiSyncCollector``'s worker processes, this actor's torch generator (its
+        exploration noise and random actions) and a reset, so that the first step acts
+        from the seeded reset. (``RayCollector.set_seed`` did neither: each actor's
+        first observation came from its unseeded reset at construction, which its env's
+        state no longer matched, and its draws were not reproducible.)"""
+        out = super().set_seed(seed, static_seed=static_seed)
+        torch.manual_seed(seed)
+        self.reset()
+        return out
 
     def __repr__(self) -> str:
         return f"{type(self).__name__}(worker={getattr(self, 'worker_idx', '?')})"
@@ -132,7 +147,8 @@ def make_ray_collector(cfg: DictConfig, common: dict):
         # the policy comes from a factory; its weights are pushed explicitly
         warnings.filterwarnings("ignore", message="The policy is not an nn.Module")
         return RayCollector(
-            [functools.partial(make_env, cfg, cpu)] * cfg.collector.num_workers,
+            [functools.partial(make_env, cfg, cpu, record_episode=True)]
+            * cfg.collector.num_workers,
             policy_factory=functools.partial(worker_policy, cfg),
             collector_class=RayWorkerCollector,
             sync=True,  # one share from every worker per batch

@@ -1,18 +1,19 @@
 """The training episode in progress as a checkpoint component, so that a resumed run
-continues the very episode it was in (``collector.backend=direct`` or ``process``).
+continues the very episode it was in (every ``collector.backend``).
 
 Two things carry an episode from one batch to the next: the env (its simulator, wrappers
 and random generators, rebuilt by :class:`~torchrl_rave.envs.EpisodeReplay`) and
 TorchRL's collector, which keeps the step it will act on next (the observation, the step
 count, the episode's return so far). :class:`EpisodeCheckpoint` saves both, and restores
-both into a new collector. A worker process of a ``process`` collector holds its own env,
-collector step and random state (which draws its exploration noise);
+both into a new collector. A worker of a ``process`` or ``ray`` collector holds its own
+env, collector step and random state (which draws its exploration noise);
 :class:`EpisodeWorkerCollector` hands the three to the learner's process and takes them
 back. Resumed this way, a run gives the numbers of the run that was never stopped.
 """
 
 from __future__ import annotations
 
+import sys
 import warnings
 
 import torch
@@ -53,6 +54,15 @@ def _carrier(collector) -> TensorDict | None:
     return getattr(collector, "_carrier", None)
 
 
+def _has_workers(collector) -> bool:
+    """Whether ``collector`` collects in worker processes (``MultiSyncCollector``) or Ray
+    actors (``RayCollector``), whose inner collectors answer ``map_fn``."""
+    if isinstance(collector, MultiSyncCollector):
+        return True
+    ray = sys.modules.get("torchrl.collectors.distributed.ray")  # loaded if one exists
+    return ray is not None and isinstance(collector, ray.RayCollector)
+
+
 def _traj_pool_state(collector) -> torch.Tensor | None:
     if not getattr(collector, "track_traj_ids", False):
         return None
@@ -68,19 +78,19 @@ class EpisodeCheckpoint:
     stage, in new envs), which a resumed run then does too.
     :meth:`load_state_dict` keeps a saved episode until :meth:`restore` rebuilds it in
     a new collector: the direct collector's, or each worker's of a ``MultiSyncCollector``
-    of :class:`EpisodeWorkerCollector` workers. An episode that cannot be saved (a Ray
-    collector, whose envs live in its actors; an env without an ``EpisodeReplay``) is
-    saved as ``{"kept": False}``, with why.
+    or ``RayCollector`` of :class:`EpisodeWorkerCollector` workers. An episode that
+    cannot be saved (an env without an ``EpisodeReplay``, workers that act with older
+    weights than the learner's) is saved as ``{"kept": False}``, with why.
     """
 
     def __init__(self) -> None:
         self.env = None
         self.collector = None
         self.saved: dict | None = None
-        #: whether the workers of a ``process`` collector act with weights older than the
-        #: learner's (set by the training loop: copies, a GPU learner's, not pushed since
-        #: the last update); their episode is then not kept, as a resumed run pushes the
-        #: current weights
+        #: whether the workers of a ``process`` or ``ray`` collector act with weights
+        #: older than the learner's (set by the training loop: copies, Ray's or a GPU
+        #: learner's, not pushed since the last update); their episode is then not kept,
+        #: as a resumed run pushes the current weights
         self.workers_behind = False
 
     def attach(self, env, collector) -> None:
@@ -89,7 +99,7 @@ class EpisodeCheckpoint:
     def state_dict(self) -> dict:
         if self.env is None and self.collector is None:  # detached: new episodes next
             return {"kept": False, "new_episode": True}
-        if isinstance(self.collector, MultiSyncCollector):
+        if _has_workers(self.collector):
             return self._workers_state()
         state = episode_state(self.env, self.collector)
         if state["kept"]:
@@ -117,7 +127,7 @@ class EpisodeCheckpoint:
 
     def restore(self, env, collector) -> str | None:
         """Rebuilds the saved episode in ``env`` and hands ``collector`` its next step (a
-        ``process`` collector: each worker its own); returns ``None`` when it did, or why
+        ``process`` or ``ray`` collector: each worker its own); returns ``None`` when it did, or why
         it could not (then ``env`` and ``collector`` must be reset: the caller does). Uses
         the saved episode once."""
         saved, self.saved = self.saved, None
@@ -126,7 +136,7 @@ class EpisodeCheckpoint:
         if not saved.get("kept"):
             return f"its checkpoint holds no episode: {saved.get('why', 'not kept')}"
         workers = saved.get("workers")
-        if isinstance(collector, MultiSyncCollector):
+        if _has_workers(collector):
             if not isinstance(workers, list) or len(workers) != collector.num_workers:
                 count = len(workers) if isinstance(workers, list) else "no"
                 return (f"its checkpoint holds {count} workers' episodes, the collector has "
@@ -225,10 +235,11 @@ def continue_episode(saved: dict, env, collector) -> str | None:
 
 
 class EpisodeWorkerCollector(Collector):
-    """TorchRL's ``Collector`` as the worker of a ``MultiSyncCollector``
-    (``collector_class=``) whose episode a checkpoint can keep: its env must be built with
-    ``record_episode=True``. The learner's process calls the two methods below in every
-    worker through the collector's ``map_fn``, between batches, while the workers wait.
+    """TorchRL's ``Collector`` as the worker of a ``MultiSyncCollector`` or a
+    ``RayCollector`` (``collector_class=``) whose episode a checkpoint can keep: its env
+    must be built with ``record_episode=True``. The learner's process calls the two
+    methods below in every worker through the collector's ``map_fn``, between batches,
+    while the workers wait.
 
     Besides the episode and the collector's next step, a worker keeps the state of its
     process's torch generator, from which its policy draws the exploration noise (and
@@ -255,21 +266,15 @@ class EpisodeWorkerCollector(Collector):
 
 
 def resume_collecting(
-    episode: EpisodeCheckpoint,
-    env,
-    collector,
-    seed: int,
-    rng_state: dict,
-    *,
-    continue_episode: bool,
+    episode: EpisodeCheckpoint, env, collector, seed: int, rng_state: dict
 ) -> bool:
     """What a resumed run does with its first collector: continues the episode of the
-    checkpoint just loaded into ``episode`` (``continue_episode``: a direct or process
-    collector); where it cannot (:class:`EpisodeNotRestored` says why), or where the run
-    was about to start new episodes anyway, reseeds ``env`` with ``seed`` and starts a new
-    episode. Then sets the random state back to ``rng_state``, the checkpoint's, whatever
-    building the collector drew. Returns whether the episode was continued."""
-    continued = continue_episode and _restore_or_restart(episode, env, collector, seed)
+    checkpoint just loaded into ``episode`` (each worker's, for a collector of workers);
+    where it cannot (:class:`EpisodeNotRestored` says why), or where the run was about to
+    start new episodes anyway, reseeds ``env`` (and the workers) with ``seed`` and starts
+    a new episode. Then sets the random state back to ``rng_state``, the checkpoint's,
+    whatever building the collector drew. Returns whether the episode was continued."""
+    continued = _restore_or_restart(episode, env, collector, seed)
     GlobalRNGState().load_state_dict(rng_state)
     return continued
 
@@ -288,7 +293,7 @@ def _restore_or_restart(episode: EpisodeCheckpoint, env, collector, seed: int) -
             stacklevel=3,
         )
     env.set_seed(seed)
-    if isinstance(collector, MultiSyncCollector):  # the workers' own envs and streams
+    if _has_workers(collector):  # the workers' own envs and streams
         collector.set_seed(seed)
     collector.reset()
     return False

@@ -179,7 +179,6 @@ def train_group(cfg: DictConfig, run_dir: str) -> dict[str, float]:
     apply_process_settings(cfg)
 
     record = cfg.collector.backend == "direct"  # in-process envs keep their episodes
-    keeps_episode = cfg.collector.backend in ("direct", "process")  # workers keep theirs
     seeds: list[_Seed] = []
     rng = SeedStreams(len(cfg.seeds), device)
     for i, seed in enumerate(cfg.seeds):
@@ -263,7 +262,7 @@ def train_group(cfg: DictConfig, run_dir: str) -> dict[str, float]:
                 s.episode.attach(s.env, s.collector)
                 if s.rng_at_load is not None:  # a resumed seed continues its episode
                     resume_collecting(s.episode, s.env, s.collector, s.seed + counters["frames"],
-                                      s.rng_at_load, continue_episode=keeps_episode)  # fmt: skip
+                                      s.rng_at_load)  # fmt: skip
                     s.rng_at_load = None
         iterators = [
             guarded_batches(s.collector, s.cfg, save_after_failure, lambda: counters["frames"],

@@ -93,9 +93,8 @@ def _train(cfg: DictConfig, run_dir: str) -> dict[str, float]:
     torch.manual_seed(cfg.env.seed)
 
     # Environments, agent, replay buffer; an in-process collector's env keeps its episode
-    # for the checkpoints (a process collector's workers keep theirs)
+    # for the checkpoints (a worker collector's workers keep theirs)
     record = cfg.collector.backend == "direct"
-    keeps_episode = cfg.collector.backend in ("direct", "process")
     env, eval_env = make_env(cfg, device, record_episode=record), make_env(cfg, device)
     agent = make_agent(cfg, env, device)
     rb = make_replay_buffer(cfg, device)
@@ -168,9 +167,7 @@ def _train(cfg: DictConfig, run_dir: str) -> dict[str, float]:
             episode.attach(env, collector)
             if rng_at_load is not None:  # the first collector of a resumed run
                 seed = cfg.env.seed + counters["frames"]
-                resume_collecting(
-                    episode, env, collector, seed, rng_at_load, continue_episode=keeps_episode
-                )
+                resume_collecting(episode, env, collector, seed, rng_at_load)
                 rng_at_load = None
             next_stage = False
             synced_at = counters["updates"]  # the workers start with the current weights
