@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import os
 import re
+import signal
 from pathlib import Path
 
 import pytest
@@ -188,6 +189,34 @@ def test_failing_worker_stops_with_a_checkpoint(backend, env_id, tmp_path, capfd
     assert counters["updates"] == 10
 
 
+def test_a_worker_dead_between_batches_stops_the_run_with_a_checkpoint(tmp_path, monkeypatch):
+    """A worker process killed while the learner trains on its batch (SIGKILL, as the
+    kernel's OOM killer sends it) left the weight push after that batch waiting for its
+    answer forever. The run now stops with ``CollectorFailure`` naming the worker, and a
+    checkpoint of everything up to that batch."""
+    made, make, update = [], loop.make_collector, loop.update_on_batch
+
+    def make_collector(*args, **kwargs):
+        made.append(make(*args, **kwargs))
+        return made[-1]
+
+    def update_on_batch(cfg, agent, update_agent, rb, counters, n_frames):
+        out = update(cfg, agent, update_agent, rb, counters, n_frames)
+        if counters["frames"] == 200:
+            worker = made[0].procs[1]
+            os.kill(worker.pid, signal.SIGKILL)
+            worker.join(30)
+        return out
+
+    monkeypatch.setattr(loop, "make_collector", make_collector)
+    monkeypatch.setattr(loop, "update_on_batch", update_on_batch)
+    cfg = make_cfg(*TINY, "collector.backend=process", "collector.num_workers=2", "algorithm=ddpg")
+    with pytest.raises(CollectorFailure, match=r"after frame 200: worker 1 \(exit code -9\) died"):
+        rave_mujoco.train(cfg, str(tmp_path))
+    counters = RunCheckpoint(tmp_path).read("counters")
+    assert counters["frames"] == 200 and counters["updates"] == 10
+
+
 def test_bad_worker_settings_are_refused():
     with pytest.raises(ValueError, match="collector.num_workers.*backend=process or ray"):
         check_config(make_cfg(*TINY, "collector.num_workers=2"))
@@ -234,11 +263,11 @@ def test_weights_are_pushed_once_enough_updates_are_new(every, pushed_at, monkey
     """DDPG (TINY) makes 10 updates per 100-frame batch from frame 200 on; with
     weight_sync_every=15 only the batch that brings the new updates to 20 pushes."""
     events = []
-    real = loop.push_policy_weights
+    real = loop.push_or_stop
 
-    def counting(collector, policy):
+    def counting(collector, policy, *args):
         events.append("push")
-        real(collector, policy)
+        real(collector, policy, *args)
 
     real_update = loop.update_on_batch
 
@@ -246,7 +275,7 @@ def test_weights_are_pushed_once_enough_updates_are_new(every, pushed_at, monkey
         events.append(counters["frames"])
         return real_update(cfg, agent, step, rb, counters, n_frames)
 
-    monkeypatch.setattr(loop, "push_policy_weights", counting)
+    monkeypatch.setattr(loop, "push_or_stop", counting)
     monkeypatch.setattr(loop, "update_on_batch", update)
     cfg = make_cfg(*TINY, "algorithm=ddpg", f"collector.weight_sync_every={every}")
     assert rave_mujoco.train(cfg, str(tmp_path))["updates"] == 30

@@ -356,14 +356,23 @@ class TestCheckpoints:
         assert evals[-1][0] == 3000
 
     @pytest.mark.parametrize(
-        "stop, first_eval",
-        [(signal.SIGINT, "eval.interval=200"), (signal.SIGTERM, "eval.interval=100000")],
-        ids=["ctrl-c", "sigterm-before-any-evaluation"],
+        "stop, first_eval, workers",
+        [
+            (signal.SIGINT, "eval.interval=200", 0),
+            (signal.SIGTERM, "eval.interval=100000", 0),
+            (signal.SIGINT, "eval.interval=200", 2),
+        ],
+        ids=["ctrl-c", "sigterm-before-any-evaluation", "ctrl-c-to-a-run-with-workers"],
     )
     def test_a_stop_checkpoints_at_the_batch_end_and_exits_cleanly(
-        self, stop, first_eval, tmp_path
+        self, stop, first_eval, workers, tmp_path
     ):
+        """With worker processes, the Ctrl-C goes to the whole process group, as a
+        terminal sends it: the workers leave it to the learner (one that died of it left
+        the learner waiting for it forever), and the checkpoint keeps their episodes."""
         overrides = [*TINY, "algorithm=ddpg", "collector.total_frames=100000", first_eval]
+        if workers:
+            overrides += ["collector.backend=process", f"collector.num_workers={workers}"]
         proc = subprocess.Popen(
             [
                 sys.executable,
@@ -374,17 +383,23 @@ class TestCheckpoints:
             stdout=subprocess.PIPE,
             stderr=subprocess.DEVNULL,
             text=True,
+            start_new_session=True,  # its own process group, as a terminal's foreground job
         )
         scalars = tmp_path / "ddpg" / "scalars" / "time" / "fps.csv"
         deadline = time.time() + 240
         while not scalars.exists() and proc.poll() is None and time.time() < deadline:
             time.sleep(0.2)
-        proc.send_signal(stop)
+        if workers:
+            os.killpg(proc.pid, stop)
+        else:
+            proc.send_signal(stop)
         out, _ = proc.communicate(timeout=240)
         assert proc.returncode == 0
-        frames = RunCheckpoint(tmp_path).read("counters")["frames"]
+        checkpoint = RunCheckpoint(tmp_path)
+        frames = checkpoint.read("counters")["frames"]
         assert 0 < frames < 100000 and frames % 100 == 0  # a whole number of batches
         assert f"stopped at frame {frames}; resume with resume={tmp_path}" in out
+        assert checkpoint.read("episode")["kept"]
 
     def test_resume_of_a_finished_run_reproduces_its_evaluation(self, tmp_path, capsys):
         # Resuming from the final checkpoint collects nothing and evaluates the restored

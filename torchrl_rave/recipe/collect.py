@@ -64,7 +64,7 @@ def make_collector(cfg: DictConfig, env, policy, device, frames_done: int = 0):
             storing_device=cpu,
             cat_results="stack",
             # each worker keeps its episode for the checkpoints (recipe.episode)
-            collector_class=EpisodeWorkerCollector,
+            collector_class=ProcessWorkerCollector,
             **common,
         )
     # distinct, reproducible streams per worker; a resumed run does not replay old episodes
@@ -82,6 +82,20 @@ def worker_policy(cfg: DictConfig):
         return make_actor(cfg, env, ALGORITHMS[cfg.algorithm])[1]
     finally:
         env.close()
+
+
+class ProcessWorkerCollector(EpisodeWorkerCollector):
+    """TorchRL's ``Collector`` as a ``MultiSyncCollector``'s worker process: it keeps its
+    episode for the checkpoints
+    (:class:`~torchrl_rave.recipe.episode.EpisodeWorkerCollector`) and ignores SIGINT. A
+    Ctrl-C at the terminal reaches every process of the foreground group; the learner's
+    process answers it (a checkpoint at the end of the batch, then it shuts the workers
+    down), and a worker that died of it left the learner waiting for its answer forever."""
+
+    def __init__(self, *args, **kwargs) -> None:
+        if threading.current_thread() is threading.main_thread():
+            signal.signal(signal.SIGINT, signal.SIG_IGN)
+        super().__init__(*args, **kwargs)
 
 
 class RayWorkerCollector(EpisodeWorkerCollector):
@@ -163,10 +177,34 @@ def make_ray_collector(cfg: DictConfig, common: dict):
 
 def push_policy_weights(collector, policy) -> None:
     """Sends ``policy``'s current weights to every collector worker (TorchRL's weight-sync
-    schemes; a no-op for the direct backend, which runs ``policy`` itself)."""
+    schemes; a no-op for the direct backend, which runs ``policy`` itself). Raises
+    :class:`CollectorFailure` when a worker process has died since its last batch: the
+    push would wait for its answer forever."""
     if isinstance(collector, Collector):
         return
+    if isinstance(collector, MultiSyncCollector):
+        dead = [(i, p.exitcode) for i, p in enumerate(collector.procs) if not p.is_alive()]
+        if dead:
+            names = ", ".join(f"{i} (exit code {code})" for i, code in dead)
+            raise CollectorFailure(f"worker {names} died after its last batch")
     collector.update_policy_weights_(TensorDict.from_module(policy).data)
+
+
+def push_or_stop(
+    collector, policy, cfg: DictConfig, save_checkpoint: Callable[[], object], frames: int,
+    run_dir: str,
+) -> None:  # fmt: skip
+    """:func:`push_policy_weights` after a batch; when a worker has died since, the state
+    after that batch is checkpointed (``save_checkpoint()``), the collector shut down, and
+    :class:`CollectorFailure` names the env, the frame and the worker."""
+    try:
+        push_policy_weights(collector, policy)
+    except CollectorFailure as err:
+        where = stop_run(collector, save_checkpoint)
+        raise CollectorFailure(
+            f"a {cfg.collector.backend} collector worker running {cfg.env.name} failed after "
+            f"frame {frames}: {err}. The run stopped; {where}: resume with resume={run_dir}"
+        ) from None
 
 
 def workers_share_weights(collector, policy) -> bool:

@@ -48,7 +48,7 @@ from torchrl_rave.recipe.collect import (
     check_finite,
     guarded_batches,
     make_collector,
-    push_policy_weights,
+    push_or_stop,
     shutdown_on_error,
     stop_run,
 )
@@ -291,7 +291,8 @@ def train_group(cfg: DictConfig, run_dir: str) -> dict[str, float]:
             acc = update_group_on_batch(cfg, seeds, group, counters, data[0].numel())
             update_s = time.perf_counter() - t_update
             for s in seeds:
-                push_policy_weights(s.collector, s.agent.policy)
+                push_or_stop(s.collector, s.agent.policy, s.cfg, save_after_failure,
+                             counters["frames"], str(s.dir))  # fmt: skip
             frames_now = counters["frames"]
             evaluate = frames_now >= counters["next_eval"] or frames_now >= total
             fps = (frames_now - frames_at_start) / (time.perf_counter() - start)

@@ -42,7 +42,7 @@ from torchrl_rave.recipe.collect import (
     check_finite,
     guarded_batches,
     make_collector,
-    push_policy_weights,
+    push_or_stop,
     shutdown_on_error,
     stop_run,
     workers_share_weights,
@@ -206,7 +206,8 @@ def _train(cfg: DictConfig, run_dir: str) -> dict[str, float]:
                         acc[key].append(torch.tensor(value))
                 update_s = time.perf_counter() - t_update
                 if counters["updates"] - synced_at >= cfg.collector.weight_sync_every:
-                    push_policy_weights(collector, agent.policy)
+                    push_or_stop(collector, agent.policy, cfg, save_after_failure,
+                                 counters["frames"], run_dir)  # fmt: skip
                     synced_at = counters["updates"]
                 episode.workers_behind = counters["updates"] != synced_at and not shared
 
