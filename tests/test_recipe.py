@@ -361,15 +361,22 @@ class TestCheckpoints:
             (signal.SIGINT, "eval.interval=200", 0),
             (signal.SIGTERM, "eval.interval=100000", 0),
             (signal.SIGINT, "eval.interval=200", 2),
+            (signal.SIGTERM, "eval.interval=200", 2),
         ],
-        ids=["ctrl-c", "sigterm-before-any-evaluation", "ctrl-c-to-a-run-with-workers"],
+        ids=[
+            "ctrl-c",
+            "sigterm-before-any-evaluation",
+            "ctrl-c-to-a-run-with-workers",
+            "sigterm-to-a-run-with-workers",
+        ],
     )
     def test_a_stop_checkpoints_at_the_batch_end_and_exits_cleanly(
         self, stop, first_eval, workers, tmp_path
     ):
-        """With worker processes, the Ctrl-C goes to the whole process group, as a
-        terminal sends it: the workers leave it to the learner (one that died of it left
-        the learner waiting for it forever), and the checkpoint keeps their episodes."""
+        """With worker processes, the signal goes to the whole process group, as a
+        terminal sends a Ctrl-C and a batch scheduler (Slurm's ``scancel``) a SIGTERM: the
+        workers leave it to the learner (one that died of a Ctrl-C left the learner
+        waiting for it forever), and the checkpoint keeps their episodes."""
         overrides = [*TINY, "algorithm=ddpg", "collector.total_frames=100000", first_eval]
         if workers:
             overrides += ["collector.backend=process", f"collector.num_workers={workers}"]

@@ -87,14 +87,18 @@ def worker_policy(cfg: DictConfig):
 class ProcessWorkerCollector(EpisodeWorkerCollector):
     """TorchRL's ``Collector`` as a ``MultiSyncCollector``'s worker process: it keeps its
     episode for the checkpoints
-    (:class:`~torchrl_rave.recipe.episode.EpisodeWorkerCollector`) and ignores SIGINT. A
-    Ctrl-C at the terminal reaches every process of the foreground group; the learner's
-    process answers it (a checkpoint at the end of the batch, then it shuts the workers
-    down), and a worker that died of it left the learner waiting for its answer forever."""
+    (:class:`~torchrl_rave.recipe.episode.EpisodeWorkerCollector`) and ignores SIGINT and
+    SIGTERM. A Ctrl-C at the terminal, or a batch scheduler's SIGTERM (Slurm's
+    ``scancel``), reaches every process of the group; the learner's process answers it (a
+    checkpoint at the end of the batch, then it shuts the workers down), and a worker
+    that died of a Ctrl-C left the learner waiting for its answer forever. A worker still
+    ends with its learner: it exits when the learner's end of its pipe closes, and the
+    collector's shutdown kills one that does not answer."""
 
     def __init__(self, *args, **kwargs) -> None:
         if threading.current_thread() is threading.main_thread():
-            signal.signal(signal.SIGINT, signal.SIG_IGN)
+            for sig in (signal.SIGINT, signal.SIGTERM):
+                signal.signal(sig, signal.SIG_IGN)
         super().__init__(*args, **kwargs)
 
 
