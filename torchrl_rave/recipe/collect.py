@@ -92,8 +92,8 @@ class ProcessWorkerCollector(EpisodeWorkerCollector):
     ``scancel``), reaches every process of the group; the learner's process answers it (a
     checkpoint at the end of the batch, then it shuts the workers down), and a worker
     that died of a Ctrl-C left the learner waiting for its answer forever. A worker still
-    ends with its learner: it exits when the learner's end of its pipe closes, and the
-    collector's shutdown kills one that does not answer."""
+    ends with its learner: it exits within seconds of its learner's death (a SIGKILL), and
+    the collector's shutdown kills one that does not answer."""
 
     def __init__(self, *args, **kwargs) -> None:
         if threading.current_thread() is threading.main_thread():
