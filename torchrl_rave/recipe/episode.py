@@ -63,10 +63,12 @@ def _has_workers(collector) -> bool:
     return ray is not None and isinstance(collector, ray.RayCollector)
 
 
-def _traj_pool_state(collector) -> torch.Tensor | None:
-    if not getattr(collector, "track_traj_ids", False):
+def _traj_pool(collector):
+    """The pool that numbers ``collector``'s trajectories (a worker collector's is shared
+    by its workers), or ``None`` where it numbers none."""
+    if isinstance(collector, Collector) and not getattr(collector, "track_traj_ids", False):
         return None
-    return collector._traj_pool.state_dict()["traj_id"]
+    return getattr(collector, "_traj_pool", None)
 
 
 class EpisodeCheckpoint:
@@ -100,10 +102,12 @@ class EpisodeCheckpoint:
         if self.env is None and self.collector is None:  # detached: new episodes next
             return {"kept": False, "new_episode": True}
         if _has_workers(self.collector):
-            return self._workers_state()
-        state = episode_state(self.env, self.collector)
+            state = self._workers_state()
+        else:
+            state = episode_state(self.env, self.collector)
+        pool = _traj_pool(self.collector)
         if state["kept"]:
-            state["traj_id"] = _traj_pool_state(self.collector)
+            state["traj_id"] = None if pool is None else pool.state_dict()["traj_id"]
         return state
 
     def _workers_state(self) -> dict:
@@ -118,51 +122,49 @@ class EpisodeCheckpoint:
         for i, state in enumerate(states):
             if not state["kept"]:
                 return {"kept": False, "why": f"worker {i}: {state['why']}"}
-        pool = getattr(self.collector, "_traj_pool", None)  # shared by the workers
-        traj_id = None if pool is None else pool.state_dict()["traj_id"]
-        return {"kept": True, "workers": states, "traj_id": traj_id}
+        return {"kept": True, "workers": states}
 
     def load_state_dict(self, state: dict) -> None:
         self.saved = state
 
     def restore(self, env, collector) -> str | None:
         """Rebuilds the saved episode in ``env`` and hands ``collector`` its next step (a
-        ``process`` or ``ray`` collector: each worker its own); returns ``None`` when it did, or why
-        it could not (then ``env`` and ``collector`` must be reset: the caller does). Uses
-        the saved episode once."""
+        ``process`` or ``ray`` collector: each worker its own); returns ``None`` when it
+        did, or why it could not (then ``env`` and ``collector`` must be reset: the
+        caller does). Uses the saved episode once."""
         saved, self.saved = self.saved, None
         if saved is None:
             return "its checkpoint holds no episode (written before episodes were kept)"
         if not saved.get("kept"):
             return f"its checkpoint holds no episode: {saved.get('why', 'not kept')}"
-        workers = saved.get("workers")
         if _has_workers(collector):
-            if not isinstance(workers, list) or len(workers) != collector.num_workers:
-                count = len(workers) if isinstance(workers, list) else "no"
-                return (f"its checkpoint holds {count} workers' episodes, the collector has "
-                        f"{collector.num_workers} workers")  # fmt: skip
-            try:
-                answers = collector.map_fn("continue_episode", [(w,) for w in workers])
-            except Exception as err:  # noqa: BLE001 (the run starts new episodes instead)
-                return f"the workers took no episode back ({type(err).__name__}: {err})"
-            for i, why in enumerate(answers):
-                if why is not None:
-                    return f"worker {i}: {why}"
-            pool = getattr(collector, "_traj_pool", None)
-            if pool is not None and isinstance(saved.get("traj_id"), torch.Tensor):
-                pool.load_state_dict({"traj_id": saved["traj_id"]})
-            return None
-        if workers is not None:
-            return "its checkpoint holds the episodes of worker processes"
-        why = continue_episode(saved, env, collector)
-        if (
-            why is None
-            and saved.get("traj_id") is not None
-            and getattr(collector, "track_traj_ids", False)
-        ):
+            why = _continue_workers(saved.get("workers"), collector)
+        elif saved.get("workers") is not None:
+            why = "its checkpoint holds the episodes of worker processes"
+        else:
+            why = continue_episode(saved, env, collector)
+        pool = _traj_pool(collector)
+        if why is None and pool is not None and isinstance(saved.get("traj_id"), torch.Tensor):
             # the next trajectory's id, as the collector that was stopped would give it
-            collector._traj_pool.load_state_dict({"traj_id": saved["traj_id"]})
+            pool.load_state_dict({"traj_id": saved["traj_id"]})
         return why
+
+
+def _continue_workers(workers, collector) -> str | None:
+    """Each worker's saved episode (:meth:`EpisodeWorkerCollector.episode_state`) back in
+    that worker of ``collector``; ``None``, or why not."""
+    if not isinstance(workers, list) or len(workers) != collector.num_workers:
+        count = len(workers) if isinstance(workers, list) else "no"
+        return (f"its checkpoint holds {count} workers' episodes, the collector has "
+                f"{collector.num_workers} workers")  # fmt: skip
+    try:
+        answers = collector.map_fn("continue_episode", [(w,) for w in workers])
+    except Exception as err:  # noqa: BLE001 (the run starts new episodes instead)
+        return f"the workers took no episode back ({type(err).__name__}: {err})"
+    for i, why in enumerate(answers):
+        if why is not None:
+            return f"worker {i}: {why}"
+    return None
 
 
 def episode_state(env, collector) -> dict:
@@ -293,7 +295,8 @@ def _restore_or_restart(episode: EpisodeCheckpoint, env, collector, seed: int) -
             stacklevel=3,
         )
     env.set_seed(seed)
-    if _has_workers(collector):  # the workers' own envs and streams
+    if _has_workers(collector):  # reseeds and resets each worker's env and stream
         collector.set_seed(seed)
-    collector.reset()
+    else:
+        collector.reset()
     return False
