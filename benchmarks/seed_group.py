@@ -6,6 +6,7 @@ learners against S separate single-learner updates, measured side by side in one
     python benchmarks/seed_group.py --algorithms rave --seeds 1 4 --threads 2
     python benchmarks/seed_group.py --algorithms rave --seeds 4 8 --threads 2 --repeats 5
     python benchmarks/seed_group.py --streams-cost --algorithms rave --seeds 4 8 --threads 2
+    python benchmarks/seed_group.py --sampling --algorithms rave --seeds 1 2 4 8 --threads 1 2
     git show <commit>:torchrl_rave/trainers/seed_group.py > /tmp/seed_group_old.py
     python benchmarks/seed_group.py --against /tmp/seed_group_old.py --algorithms rave --seeds 8 --threads 2
 
@@ -28,6 +29,10 @@ With ``--repeats n`` each S is measured n times over (the separate learners' spe
 between runs on a shared machine); a row then reports the repeat with the median ratio
 and lists every repeat's ratio (``speedup_repeats``).
 Results go to stdout and ``benchmarks/seed_group.json`` (``--out``).
+
+``--sampling`` times how a group's update gets its ``[S, B]`` batch in a run: the recipe's
+``GroupSampler`` against ``rb.sample()`` per seed and a stack of the samples, from replay
+buffers laid out as a Hopper-v5 run's, with the group's update in the same rounds.
 
 ``--against FILE`` times a change to the group itself: the group of this checkout against
 the same group built from another copy of ``torchrl_rave/trainers/seed_group.py`` (an
@@ -215,6 +220,87 @@ def streams_cost(algorithms, seeds, threads, device, seconds: float) -> dict:
     return {"rows": rows}
 
 
+def recipe_transitions(n: int, seed: int, device) -> TensorDict:
+    """``n`` transitions laid out as the recipe's replay buffer stores a Hopper-v5 run's
+    (every entry its collector writes, with its dtype and width; random values)."""
+    g = torch.Generator().manual_seed(seed)
+    obs, act = 11, 3
+
+    def flags():
+        return torch.rand(n, 1, generator=g) < 0.01
+
+    def step_side():
+        return {"observation": torch.randn(n, obs, generator=g), "done": flags(),
+                "terminated": flags(), "truncated": flags(),
+                "episode_reward": torch.randn(n, 1, generator=g),
+                "step_count": torch.randint(1000, (n, 1), generator=g)}  # fmt: skip
+
+    return TensorDict(
+        {
+            **step_side(),
+            "action": torch.rand(n, act, generator=g) * 2 - 1,
+            "param": torch.randn(n, act, generator=g),
+            "index": torch.arange(n),
+            "collector": {"traj_ids": torch.randint(100, (n,), generator=g)},
+            "next": {**step_side(), "reward": torch.randn(n, 1, generator=g)},
+        },
+        [n],
+    ).to(device)
+
+
+def sampling_cost(algorithms, seeds, threads, device, seconds: float, frames: int) -> dict:
+    """The batch a group's update takes, as the recipe samples it from the seeds' replay
+    buffers of ``frames`` transitions each (``GroupSampler``), against ``rb.sample()`` per
+    seed under its stream and a stack of the samples; the group's update (world-model step
+    and agent update) timed in the same rounds, for scale."""
+    from torchrl_rave.recipe.agent import make_replay_buffer
+    from torchrl_rave.recipe.group import GroupSampler
+
+    rows = []
+    for n_threads, algorithm, S in _settings(algorithms, seeds, threads, device):
+        update, group = group_case(algorithm, S, device)
+        cfg = recipe_config([f"algorithm={algorithm}"])
+        rbs = []
+        for i in range(S):
+            rb = make_replay_buffer(cfg, device)
+            rb.extend(recipe_transitions(frames, i, device))
+            rbs.append(rb)
+        sampler, stacked = GroupSampler(rbs, group), GroupSampler(rbs, group)
+        assert sampler.direct
+        stacked.direct = False  # its way for other buffers: rb.sample() per seed, stacked
+        old = Case(f"rb.sample() x{S}, stacked", lambda _batch, f=stacked: f(), [None])
+        new = Case(f"GroupSampler x{S}", lambda _batch, f=sampler: f(), [None])
+        measure([old, new, update], device, seconds, rounds=7)
+        batches = 2 if group.world_model is not None else 1  # per update, in a run
+
+        def share(case, batches=batches, update=update):
+            return batches * case.seconds / (update.seconds + batches * case.seconds)
+
+        row = {
+            "algorithm": algorithm,
+            "threads": n_threads,
+            "seeds": S,
+            "stacked_samples_us": old.seconds * 1e6,
+            "group_sampler_us": new.seconds * 1e6,
+            "ratio": new.seconds / old.seconds,
+            "group_update_ms": update.seconds * 1e3,
+            "batches_per_update": batches,
+            "stacked_share_of_update_step": share(old),
+            "group_sampler_share_of_update_step": share(new),
+        }
+        rows.append(row)
+        print(
+            f"{algorithm:5s} threads={n_threads} S={S}: a batch by rb.sample() x{S} and a "
+            f"stack {row['stacked_samples_us']:.0f} us, by GroupSampler "
+            f"{row['group_sampler_us']:.0f} us (ratio {row['ratio']:.2f}); group update "
+            f"{row['group_update_ms']:.1f} ms; sampling's share of an update step "
+            f"{row['stacked_share_of_update_step']:.1%} -> "
+            f"{row['group_sampler_share_of_update_step']:.1%}",
+            flush=True,
+        )
+    return {"frames_per_seed": frames, "rows": rows}
+
+
 def against(path: Path, algorithms, seeds, threads, device, seconds: float) -> dict:
     """This checkout's group against the group of the ``seed_group.py`` at ``path``: the
     median of paired rounds' time ratios (this / that), with its quartiles."""
@@ -283,6 +369,16 @@ def main(argv: list[str] | None = None) -> dict:
         "(to benchmarks/seed_group_streams.json unless --out is given)",
     )
     parser.add_argument(
+        "--sampling",
+        action="store_true",
+        help="instead: time the group's batch sampling (GroupSampler) against rb.sample() "
+        "per seed and a stack (to benchmarks/seed_group_sampling.json unless --out is given)",
+    )
+    parser.add_argument(
+        "--frames", type=count(), default=10_000,
+        help="with --sampling: transitions in each seed's replay buffer",
+    )  # fmt: skip
+    parser.add_argument(
         "--repeats",
         type=count(),
         default=1,
@@ -305,16 +401,17 @@ def main(argv: list[str] | None = None) -> dict:
         parser.error(f"--algorithms {unknown}: a seed group trains {', '.join(GROUP_ALGORITHMS)}")
     if torch.device(args.device).type == "cuda" and not torch.cuda.is_available():
         parser.error("--device cuda but torch.cuda.is_available() is False")
-    if args.repeats > 1 and (args.streams_cost or args.against):
+    if args.repeats > 1 and (args.streams_cost or args.against or args.sampling):
         parser.error("--repeats applies to the speed-up rows only")
-    if args.streams_cost and args.against:
-        parser.error("--streams-cost and --against are two different measurements")
+    if sum(map(bool, (args.streams_cost, args.against, args.sampling))) > 1:
+        parser.error("--streams-cost, --against and --sampling are different measurements")
     if args.against is not None and not args.against.is_file():
         parser.error(f"--against {args.against}: no such file")
     if args.out is None:
         name = (
             "seed_group_streams.json" if args.streams_cost
             else "seed_group_against.json" if args.against
+            else "seed_group_sampling.json" if args.sampling
             else "seed_group.json"
         )  # fmt: skip
         args.out = ROOT / "benchmarks" / name
@@ -330,6 +427,10 @@ def main(argv: list[str] | None = None) -> dict:
             if args.streams_cost
             else against(args.against, args.algorithms, args.seeds, threads, device, args.seconds)
             if args.against
+            else sampling_cost(
+                args.algorithms, args.seeds, threads, device, args.seconds, args.frames
+            )
+            if args.sampling
             else run(args.algorithms, args.seeds, threads, device, args.seconds, args.repeats)
         ),
     }

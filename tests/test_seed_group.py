@@ -364,3 +364,80 @@ def test_without_autograd_a_groups_gaussian_heads_are_one_layer(monkeypatch):
     separate = wm._gaussian_forward(wm.transition, x)  # with autograd: the two heads
     for a, b in zip(fused, separate, strict=True):
         torch.testing.assert_close(a, b.detach())
+
+
+def transitions(n: int, seed: int) -> TensorDict:
+    """``n`` transitions with the entries a collector gives and a group does not read."""
+    g = torch.Generator().manual_seed(seed)
+    terminated = torch.rand(n, 1, generator=g) < 0.2
+    return TensorDict(
+        {
+            "observation": torch.randn(n, OBS, generator=g),
+            "action": torch.rand(n, ACT, generator=g) * 2 - 1,
+            "episode_reward": torch.randn(n, 1, generator=g),
+            ("next", "observation"): torch.randn(n, OBS, generator=g),
+            ("next", "reward"): torch.randn(n, 1, generator=g),
+            ("next", "done"): terminated.clone(),
+            ("next", "terminated"): terminated,
+            ("next", "truncated"): torch.zeros(n, 1, dtype=torch.bool),
+        },
+        [n],
+    )
+
+
+@pytest.mark.parametrize("path", ["direct", "fallback"])
+def test_a_group_sample_is_each_seeds_own_sample(path):
+    """``GroupSampler`` gives each seed the rows its own ``rb.sample()`` gives under its
+    stream, bit for bit, and leaves every stream where ``rb.sample()`` leaves it; its batch
+    holds the entries the group reads. The buffers differ in length, so a seed that drew
+    from another's buffer would show. ``fallback``: buffers with a transform, which the
+    group samples by ``rb.sample()`` itself."""
+    from torchrl.envs.transforms import RenameTransform
+
+    from torchrl_rave.recipe.agent import make_replay_buffer
+    from torchrl_rave.recipe.group import GroupSampler
+
+    cfg, _ = learner("rave", 0)
+    group = make_group([learner("rave", s)[1] for s in range(3)], cfg,
+                       streams=seed_group.SeedStreams(3))  # fmt: skip
+
+    def start():  # fresh buffers, and each stream at its start
+        rbs = []
+        for i, n in enumerate((40, 90, 300)):
+            rb = make_replay_buffer(cfg, "cpu")
+            rb.extend(transitions(n, seed=20 + i))
+            if path == "fallback":
+                rb.append_transform(RenameTransform(["episode_reward"], ["ret"]))
+            rbs.append(rb)
+        for i in range(3):
+            torch.manual_seed(50 + i)
+            group.streams.capture(i)
+        return rbs
+
+    def probe():  # what each stream draws next
+        out = []
+        for i in range(3):
+            with group.streams.use(i):
+                out.append(torch.rand(4))
+        return out
+
+    rbs = start()
+    sampler = GroupSampler(rbs, group)
+    assert sampler.direct == (path == "direct")
+    got = [sampler() for _ in range(3)]
+    next_draws = probe()
+    rbs = start()
+    keys = group.batch_keys(rbs[0].storage._storage.keys(True, True))
+    assert keys == ["observation", "action", ("next", "observation"), ("next", "reward"),
+                    ("next", "terminated")]  # fmt: skip
+    for step in range(3):
+        assert got[step].batch_size == torch.Size([3, cfg.replay_buffer.batch_size])
+        if path == "direct":
+            assert set(got[step].keys(True, True)) == set(keys)
+        for i, rb in enumerate(rbs):
+            with group.streams.use(i):
+                want = rb.sample()
+            for key in keys:
+                assert torch.equal(got[step][i].get(key), want.get(key)), (step, i, key)
+    for a, b in zip(next_draws, probe(), strict=True):
+        assert torch.equal(a, b)

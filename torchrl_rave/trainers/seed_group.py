@@ -736,6 +736,18 @@ class SeedGroup:
         return _run(layers, torch.cat(xs, -1), detach).squeeze(-1)
 
     # ----------------------------------------------------------------- targets
+    def batch_keys(self, available) -> list:
+        """The entries of a batch that :meth:`update` and :meth:`update_world_model` read,
+        of a replay buffer whose entries are ``available`` (nested keys): the observation,
+        the action, the next observation, the reward, and ``terminated`` (or, where the
+        data has none, ``done``)."""
+        k = self.keys
+        available = set(available)
+        end = ("next", k.terminated)
+        if end not in available:
+            end = ("next", k.done)
+        return ["observation", k.action, ("next", "observation"), ("next", k.reward), end]
+
     def _read(self, batch: TensorDictBase):
         S, k = self.num_seeds, self.keys
         if batch.batch_dims != 2 or batch.batch_size[0] != S:
