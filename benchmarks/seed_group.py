@@ -266,8 +266,8 @@ def sampling_cost(algorithms, seeds, threads, device, seconds: float, frames: in
             rb.extend(recipe_transitions(frames, i, device))
             rbs.append(rb)
         sampler, stacked = GroupSampler(rbs, group), GroupSampler(rbs, group)
-        assert sampler.direct
-        stacked.direct = False  # its way for other buffers: rb.sample() per seed, stacked
+        assert sampler.keys is not None
+        stacked.keys = None  # its way for other buffers: rb.sample() per seed, stacked
         old = Case(f"rb.sample() x{S}, stacked", lambda _batch, f=stacked: f(), [None])
         new = Case(f"GroupSampler x{S}", lambda _batch, f=sampler: f(), [None])
         measure([old, new, update], device, seconds, rounds=7)

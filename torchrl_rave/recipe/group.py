@@ -380,38 +380,37 @@ class GroupSampler:
     of 8 seeds, about a tenth of a RAVE group's update step (``python
     benchmarks/seed_group.py --sampling``). Buffers of another kind (not a
     ``TensorDictReplayBuffer`` over a ``TensorStorage`` with a ``RandomSampler``, or with
-    a transform) are sampled by ``rb.sample()`` and stacked."""
+    a transform), and buffers that hold no data yet, are sampled by ``rb.sample()`` and
+    stacked."""
 
     def __init__(self, rbs, group) -> None:
-        self.rbs, self.streams, self.group = list(rbs), group.streams, group
-        self.direct = all(
+        self.rbs, self.streams = list(rbs), group.streams
+        direct = all(
             isinstance(rb, TensorDictReplayBuffer)
             and type(rb.sampler) is RandomSampler
             and isinstance(rb.storage, TensorStorage)
+            and rb.storage.initialized
             and (rb.transform is None or len(rb.transform) == 0)
             and getattr(rb, "_sample_unit", None) is None
             for rb in self.rbs
         )
-        self._keys = None
+        #: the entries gathered straight from the storages; ``None``: ``rb.sample()``
+        self.keys = (
+            group.batch_keys(self.rbs[0].storage._storage.keys(True, True)) if direct else None
+        )
 
     def __call__(self) -> TensorDictBase:
-        if not self.direct:
-            batches = []
-            for i, rb in enumerate(self.rbs):
-                with self.streams.use(i):
-                    batches.append(rb.sample())
-            return torch.stack(batches)
-        index = []
-        for i, rb in enumerate(self.rbs):
-            with self.streams.use(i):
-                index.append(rb.sampler.sample(rb.storage, rb.batch_size)[0])
-        stores = [rb.storage._storage for rb in self.rbs]  # the TensorDict of each storage
-        if self._keys is None:
-            self._keys = self.group.batch_keys(stores[0].keys(True, True))
+        rbs = self.rbs
+        if self.keys is None:
+            return self.streams.stack(lambda i: rbs[i].sample())
+        index = self.streams.stack(
+            lambda i: rbs[i].sampler.sample(rbs[i].storage, rbs[i].batch_size)[0]
+        )
+        stores = [rb.storage._storage for rb in rbs]  # the TensorDict of each storage
         return TensorDict(
             {key: torch.stack([st.get(key)[idx] for st, idx in zip(stores, index, strict=True)])
-             for key in self._keys},
-            batch_size=[len(self.rbs), index[0].shape[0]],
+             for key in self.keys},
+            batch_size=index.shape,
         )  # fmt: skip
 
 
