@@ -53,6 +53,50 @@ class TestSchema:
         assert world_model_sizes(wider) == {**WORLD_MODEL_SIZES["paper"], "transition_cells": 32}
 
 
+class TestMujocoPreset:
+    """``preset=mujoco``: the field's sizes, each learner with its own published settings."""
+
+    def test_each_learner_gets_its_own_settings(self):
+        common = {"network.actor_cells": 256, "network.critic_cells": 256,
+                  "network.num_layers": 3, "replay_buffer.batch_size": 256,
+                  "world_model.size": "mujoco"}  # fmt: skip
+        own = {  # CleanRL's single-file scripts: SAC's critic and temperature rates, 5k start
+            "ddpg": {"optim.lr_critic": 3e-4, "optim.lr_alpha": 3e-4,
+                     "collector.init_random_frames": 25_000},
+            "td3": {"optim.lr_critic": 3e-4, "collector.init_random_frames": 25_000},
+            "rave": {"optim.lr_critic": 3e-4, "collector.init_random_frames": 25_000},
+            "sac": {"optim.lr_critic": 1e-3, "optim.lr_alpha": 1e-3,
+                    "collector.init_random_frames": 5_000},
+        }  # fmt: skip
+        for algorithm, values in own.items():
+            cfg = default_config(preset="mujoco", algorithm=algorithm)
+            for key, value in {**common, **values}.items():
+                assert OmegaConf.select(cfg, key) == value, (algorithm, key)
+        assert default_config(preset="mujoco", algorithm="ppo").network.actor_cells == 64
+
+    def test_the_command_line_wins_over_the_algorithms_own_values(self):
+        cfg = default_config("algorithm=sac", "optim.lr_critic=5e-4", preset="mujoco")
+        assert (cfg.optim.lr_critic, cfg.optim.lr_alpha) == (5e-4, 1e-3)
+
+    def test_the_recipe_applies_them_under_its_command_line(self, tmp_path):
+        """The hydra path: the run's saved config has SAC's own values where the command
+        line gave none, and the command line's where it did."""
+        done = subprocess.run(
+            [sys.executable, str(RECIPE), "preset=mujoco", "algorithm=sac",
+             "collector.total_frames=300", "replay_buffer.batch_size=64", "eval.episodes=1",
+             "optim.lr_alpha=2e-3", "logger.progress_bar=false", "threads=1",
+             f"hydra.run.dir={tmp_path}"],
+            capture_output=True, text=True, timeout=300,
+        )  # fmt: skip
+        assert done.returncode == 0, done.stderr[-2000:]
+        from torchrl_rave.recipe.checkpoint import RunCheckpoint
+
+        saved = OmegaConf.create(RunCheckpoint(tmp_path).config())
+        assert saved.optim.lr_critic == 1e-3 and saved.optim.lr_alpha == 2e-3
+        assert saved.collector.init_random_frames == 5_000
+        assert saved.replay_buffer.batch_size == 64 and saved.network.actor_cells == 256
+
+
 class TestAllProblemsAtOnce:
     def test_types_ranges_cross_key_rules_and_unknown_keys_together(self):
         cfg = make_cfg("collector.frames_per_batch=20000", "optim.gamma=1.5",

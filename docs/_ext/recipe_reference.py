@@ -73,7 +73,12 @@ class _TableDirective(Directive):
 
 class RecipeKeys(_TableDirective):
     def lines(self) -> list[str]:
-        from torchrl_rave.recipe.schema import PRESETS, RecipeConfig, schema_fields
+        from torchrl_rave.recipe.schema import (
+            PRESET_ALGORITHMS,
+            PRESETS,
+            RecipeConfig,
+            schema_fields,
+        )
 
         defaults = OmegaConf.structured(RecipeConfig)
         hints: dict[str, typing.Any] = {}
@@ -82,6 +87,12 @@ class RecipeKeys(_TableDirective):
             default = OmegaConf.select(defaults, dotted)
             default = OmegaConf.to_container(default) if OmegaConf.is_config(default) else default
             paper = _preset_value(PRESETS["paper"], dotted)
+            mujoco = _preset_value(PRESETS["mujoco"], dotted)
+            mujoco = "" if mujoco is MISSING else _literal(mujoco)
+            for algorithm, own in PRESET_ALGORITHMS["mujoco"].items():
+                value = _preset_value(own, dotted)
+                if value is not MISSING:
+                    mujoco = f"{mujoco} ({algorithm}: {_literal(value)})".strip()
             rule = f.metadata.get("rule")
             tp = hints.get(dotted, f.type)
             meaning = _rst_inline(f.metadata["help"])
@@ -92,11 +103,12 @@ class RecipeKeys(_TableDirective):
                     f"``{dotted}`` ({_type_name(tp)})",
                     _literal(default),
                     "" if paper is MISSING else _literal(paper),
+                    mujoco,
                     meaning,
                 ]
             )
-        header = ["key (type)", "default (``cpu``)", "``paper``", "meaning"]
-        return _list_table(header, rows, "26 12 10 52")
+        header = ["key (type)", "default (``cpu``)", "``paper``", "``mujoco``", "meaning"]
+        return _list_table(header, rows, "24 10 9 12 45")
 
 
 class RecipeMetrics(_TableDirective):

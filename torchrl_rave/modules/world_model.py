@@ -21,7 +21,9 @@ __all__ = ["WorldModelEnsemble", "WORLD_MODEL_SIZES", "network_sizes"]
 
 
 # Named sizes: ``cpu`` trains at a few ms per step on a laptop core; ``paper`` has the
-# paper's depths (appendix A) with the widths of STEVE's released configuration.
+# paper's depths (appendix A) with the widths of STEVE's released configuration; ``mujoco``
+# has an MBPO member's transition network (4 hidden layers of 200) and the paper's reward and
+# termination depths at STEVE's width, the smallest sizes either justifies.
 def network_sizes(
     transition: tuple[int, int], reward: tuple[int, int], termination: tuple[int, int]
 ) -> dict[str, int]:
@@ -34,10 +36,12 @@ def network_sizes(
     return out
 
 
-#: the named world-model sizes: ``cpu`` (the default) and ``paper`` (STEVE's released widths)
+#: the named world-model sizes: ``cpu`` (the default), ``paper`` (STEVE's released widths)
+#: and ``mujoco`` (an MBPO member's transition network)
 WORLD_MODEL_SIZES: dict[str, dict[str, int]] = {
     "cpu": network_sizes(transition=(64, 4), reward=(64, 3), termination=(64, 3)),
     "paper": network_sizes(transition=(512, 8), reward=(128, 4), termination=(128, 4)),
+    "mujoco": network_sizes(transition=(200, 5), reward=(128, 4), termination=(128, 4)),
 }
 
 

@@ -18,9 +18,9 @@ from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig
 
 from torchrl_rave.recipe.checkpoint import config_for_resume
-from torchrl_rave.recipe.config import ConfigError, check_command_line
+from torchrl_rave.recipe.config import ConfigError, check_command_line, override_keys
 from torchrl_rave.recipe.loop import train
-from torchrl_rave.recipe.schema import defaults
+from torchrl_rave.recipe.schema import defaults, with_algorithm_preset
 
 __all__ = ["exit_on_bad_command_line", "main", "run_job"]
 
@@ -47,12 +47,15 @@ def run_job(cfg: DictConfig) -> float:
     continue, or a run directory that holds a run already, exits with its message only."""
     run_dir = HydraConfig.get().runtime.output_dir
     try:
+        overrides = list(HydraConfig.get().overrides.task)
         if cfg.resume:
-            overrides = list(HydraConfig.get().overrides.task)
             try:
                 cfg = config_for_resume(cfg.resume, overrides, defaults())
             except FileNotFoundError as err:  # no run there: the message names the path
                 raise SystemExit(f"resume={cfg.resume}: {err}") from None
+        else:  # the preset's values for the algorithm, under the command line's
+            preset = HydraConfig.get().runtime.choices.get("preset", "cpu")
+            cfg = with_algorithm_preset(cfg, preset, override_keys(overrides))
         return train(cfg, run_dir).get("eval/return", float("nan"))
     except (ConfigError, FileExistsError) as err:  # the message says it all
         raise SystemExit(f"{err}") from None

@@ -285,6 +285,13 @@ def _check_curriculum(cfg: DictConfig, bad: set, problems: list[str]) -> None:
         problems.append(_invalid("curriculum.metric", c.metric, f"one of {evals}"))
 
 
+def override_keys(overrides: list[str]) -> list[str]:
+    """The dotted keys a hydra command line's ``overrides`` set (``a.b=1`` -> ``a.b``)."""
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+
+    return [o.key_or_group for o in OverridesParser.create().parse_overrides(overrides)]
+
+
 def check_command_line(overrides: list[str]) -> None:
     """The recipe's command-line overrides, checked before hydra composes them: unknown
     keys and every problem :func:`check_config` finds in the config they give, raised
@@ -323,7 +330,10 @@ def check_command_line(overrides: list[str]) -> None:
             "given: each run of a seed group takes its env.seed from seeds; drop env.seed="
         )
     if not resume and preset in PRESETS:
-        cfg = default_config(preset=preset)
+        algorithm = values.get("algorithm")
+        cfg = default_config(
+            preset=preset, algorithm=algorithm if isinstance(algorithm, str) else None
+        )
         OmegaConf.set_struct(cfg, False)
         for key, value in values.items():
             OmegaConf.update(cfg, key, value, merge=False)

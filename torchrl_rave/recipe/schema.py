@@ -6,7 +6,9 @@ range rule (``metadata["rule"]``, a :class:`~torchrl_rave._checks.Rule`) and a l
 help (``metadata["help"]``). :func:`default_config` gives a ready config without the
 repository, e.g. for :func:`~torchrl_rave.recipe.agent.make_agent`; importing this module
 registers the schema's defaults (``rave_recipe``) and the presets (group ``preset``:
-``cpu``, ``paper``) with hydra's ConfigStore, which ``recipes/config.yaml`` selects.
+``cpu``, ``paper``, ``mujoco``) with hydra's ConfigStore, which ``recipes/config.yaml``
+selects; a preset's values for one algorithm (:data:`PRESET_ALGORITHMS`) are applied once
+the algorithm is known (:func:`with_algorithm_preset`).
 
 Examples:
     >>> cfg = default_config("collector.total_frames=2000", algorithm="steve")
@@ -14,10 +16,13 @@ Examples:
     ('steve', 'InvertedPendulum-v5', 2000, 'cpu')
     >>> default_config(preset="paper").replay_buffer.batch_size
     512
+    >>> [default_config(preset="mujoco", algorithm=a).optim.lr_critic for a in ("td3", "sac")]
+    [0.0003, 0.001]
 """
 
 from __future__ import annotations
 
+from collections.abc import Iterable
 from dataclasses import MISSING, dataclass, field, fields, is_dataclass
 from typing import Any
 
@@ -37,7 +42,15 @@ from torchrl_rave._checks import (
 )
 from torchrl_rave.modules.world_model import WORLD_MODEL_SIZES
 
-__all__ = ["PRESETS", "RecipeConfig", "default_config", "schema_fields"]
+__all__ = [
+    "PRESETS",
+    "PRESET_ALGORITHMS",
+    "RecipeConfig",
+    "default_config",
+    "preset_values",
+    "schema_fields",
+    "with_algorithm_preset",
+]
 
 
 def key(default, help: str, rule: Rule | None = None, **kw):
@@ -190,9 +203,10 @@ class WorldModelConfig:
     size: str = key(
         "cpu",
         (
-            "a named size of `torchrl_rave.modules.world_model.WORLD_MODEL_SIZES`: `cpu` (4"
-            " x 64 transition, 3 x 64 reward and termination) or `paper` (8 x 512 and 4 x "
-            "128, STEVE's released widths)"
+            "a named size of `torchrl_rave.modules.world_model.WORLD_MODEL_SIZES` (FC "
+            "layers x width, output layer included): `cpu` (4 x 64 transition, 3 x 64 reward"
+            " and termination), `paper` (8 x 512 and 4 x 128, STEVE's released widths) or "
+            "`mujoco` (5 x 200, an MBPO member's transition network, and 4 x 128)"
         ),
         one_of(list(WORLD_MODEL_SIZES)),
     )
@@ -503,6 +517,10 @@ class RecipeConfig:
 #: The presets: what each changes from the schema's defaults (which are the CPU preset).
 #: ``paper``: the paper's MuJoCo hyper-parameters (appendix table), sized for a GPU; the
 #: world model's widths are STEVE's released ones (``modules.world_model.WORLD_MODEL_SIZES``).
+#: ``mujoco``: the field's sizes and settings for MuJoCo tasks (2 x 256 networks, batch 256,
+#: CleanRL's single-file DDPG and TD3 settings, an MBPO-sized world model); where a learner's
+#: published settings differ from these, :data:`PRESET_ALGORITHMS` holds its own. The
+#: recipe page's preset table cites the source of every value.
 PRESETS: dict[str, dict] = {
     "cpu": {},
     "paper": {
@@ -515,7 +533,62 @@ PRESETS: dict[str, dict] = {
         "eval": {"interval": 10_000, "episodes": 10},
         "checkpoint": {"interval": 50_000},
     },
+    "mujoco": {
+        "collector": {"total_frames": 1_000_000, "init_random_frames": 25_000},
+        "replay_buffer": {"batch_size": 256},
+        "world_model": {"size": "mujoco", "pretrain_frames": 25_000,
+                        "pretrain_updates": 10_000},
+        "network": {"actor_cells": 256, "critic_cells": 256, "num_layers": 3},
+        "eval": {"interval": 5_000, "episodes": 10},
+        "checkpoint": {"interval": 10_000},
+    },
 }  # fmt: skip
+
+#: A preset's values for one algorithm, over the preset's own and under the command line:
+#: where the field publishes other settings for that learner (SAC's learning rates and
+#: random start, PPO's network width).
+PRESET_ALGORITHMS: dict[str, dict[str, dict]] = {
+    "mujoco": {
+        "sac": {
+            "collector": {"init_random_frames": 5_000},
+            "optim": {"lr_critic": 1.0e-3, "lr_alpha": 1.0e-3},
+        },
+        "ppo": {"network": {"actor_cells": 64, "critic_cells": 64}},
+    },
+}
+
+
+def preset_values(preset: str, algorithm: str) -> DictConfig:
+    """What ``preset`` changes from the schema's defaults for ``algorithm``: its values,
+    then its values for that algorithm (:data:`PRESET_ALGORITHMS`)."""
+    if preset not in PRESETS:
+        raise ValueError(f"preset={preset!r}: expected one of {list(PRESETS)}")
+    own = PRESET_ALGORITHMS.get(preset, {}).get(algorithm, {})
+    return OmegaConf.merge(PRESETS[preset], own)
+
+
+def with_algorithm_preset(cfg: DictConfig, preset: str, given: Iterable[str]) -> DictConfig:
+    """``cfg`` (composed from the schema, ``preset`` and a command line) with the preset's
+    values for ``cfg.algorithm`` (:data:`PRESET_ALGORITHMS`), except for the dotted keys
+    ``given`` on the command line, which keep their values. Returns ``cfg`` itself when
+    the preset has no values of its own for the algorithm."""
+    own = PRESET_ALGORITHMS.get(preset, {}).get(cfg.algorithm)
+    if not own:
+        return cfg
+    given = set(given)
+    cfg = cfg.copy()
+    for key, value in _leaves(own):
+        if key not in given:
+            OmegaConf.update(cfg, key, value, merge=False)
+    return cfg
+
+
+def _leaves(node: dict, prefix: str = ""):
+    for k, v in node.items():
+        if isinstance(v, dict):
+            yield from _leaves(v, f"{prefix}{k}.")
+        else:
+            yield f"{prefix}{k}", v
 
 
 def schema_fields(cls=RecipeConfig, prefix: str = ""):
@@ -540,17 +613,19 @@ def default_config(
     env_name: str | None = None,
     preset: str = "cpu",
 ) -> DictConfig:
-    """A complete recipe config: the schema's defaults, then ``preset`` (``cpu`` or
-    ``paper``), then ``algorithm``, ``env_name`` and the ``key=value`` ``overrides``
-    (checked by :func:`~torchrl_rave.recipe.config.check_config`, not here)."""
-    if preset not in PRESETS:
-        raise ValueError(f"preset={preset!r}: expected one of {list(PRESETS)}")
-    cfg = OmegaConf.merge(defaults(), PRESETS[preset])
-    if algorithm is not None:
-        cfg.algorithm = algorithm
+    """A complete recipe config: the schema's defaults, then ``preset`` (``cpu``,
+    ``paper`` or ``mujoco``) with its values for the algorithm, then ``algorithm``,
+    ``env_name`` and the ``key=value`` ``overrides`` (checked by
+    :func:`~torchrl_rave.recipe.config.check_config`, not here). The algorithm is
+    ``algorithm``, else an ``algorithm=`` of ``overrides``, else the default."""
+    given = OmegaConf.from_dotlist(list(overrides))
+    if algorithm is None:
+        algorithm = given.get("algorithm", RecipeConfig.algorithm)
+    cfg = OmegaConf.merge(defaults(), preset_values(preset, algorithm))
+    cfg.algorithm = algorithm
     if env_name is not None:
         cfg.env.name = env_name
-    cfg = OmegaConf.merge(cfg, OmegaConf.from_dotlist(list(overrides)))
+    cfg = OmegaConf.merge(cfg, given)
     OmegaConf.set_struct(cfg, True)
     return cfg
 
