@@ -18,7 +18,15 @@ from compare import REFERENCE
 from plot_curves import seeds, study_figures
 
 from torchrl_rave.recipe.runs import read_scalar, train_seconds
-from torchrl_rave.recipe.stats import difference95, interval95, wilson_interval
+from torchrl_rave.recipe.stats import (
+    difference95,
+    improvement_interval,
+    interval95,
+    iqm,
+    mean,
+    stratified_interval,
+    wilson_interval,
+)
 from torchrl_rave.recipe.studies import load_study, report_frames, result_dir, tasks
 
 RAVE_DIAGNOSTICS = ["rave_alpha", "wm_transition_mse", *(f"horizon_weight_h{h}" for h in range(4))]
@@ -34,6 +42,20 @@ def fmt_interval(mean: float, half: float, sign: str = "", digits: int = 0) -> s
     """``mean ± half``, or ``mean (1 seed)`` where one seed leaves no interval (NaN)."""
     value = f"{mean:{sign}.{digits}f}"
     return value + (" (1 seed)" if np.isnan(half) else f" ± {half:.{digits}f}")
+
+
+BOOTSTRAP = (
+    "a stratified bootstrap (each task's seeds resampled within the task, 10,000 times, "
+    "seeded; `torchrl_rave.recipe.stats`, the rliable method)"
+)
+
+
+def fmt_bootstrap(estimate: tuple[float, float, float], digits: int = 0) -> str:
+    """``value [lo, hi]``, or ``value (no interval)`` where the bootstrap gives none."""
+    value, lo, hi = estimate
+    if np.isnan(lo):
+        return f"{value:.{digits}f} (no interval)"
+    return f"{value:.{digits}f} [{lo:.{digits}f}, {hi:.{digits}f}]"
 
 
 def group(study, results: Path, task: str, algorithm: str) -> list[Path]:
@@ -150,6 +172,7 @@ def report(args) -> str:
         "| --- " * (5 + len(at) + with_ref) + "|",
     ]
     cost, versus, value_rows, versus_more, diagnostics = [], [], [], [], []
+    robust, finals = [], {}  # the bootstrap tables; (when, task, algorithm) -> per-seed
     # (task, algorithm) -> metric -> per-seed values at each of ``at``
     measured: dict[tuple[str, str], dict[str, list]] = {}
     for entry in tasks(study):
@@ -222,6 +245,24 @@ def report(args) -> str:
                     + " | ".join(cells_of([error], 3))
                     + " |"
                 )
+        for f, when in ((at[-1], f"at {at[-1]:,}"), (None, f"after {tail_from:,}")):
+            for algorithm in study.algorithms:
+                runs = group(study, args.results, task, algorithm)
+                scores = (
+                    measured[task, algorithm]["return"][-1]
+                    if f is not None
+                    else tail_means(runs, "eval/return", tail_from, until)
+                    if runs
+                    else None
+                )
+                if scores is not None:
+                    robust.append(
+                        f"| {task} | {when} | {algorithm} | {len(scores)} | "
+                        + " | ".join(fmt_bootstrap(stratified_interval([scores], stat))
+                                     for stat in (mean, iqm))
+                        + " |"
+                    )  # fmt: skip
+                    finals[when, task, algorithm] = scores
         rave = measured[task, "rave"] if "rave" in study.algorithms else None
         for other in (a for a in study.algorithms if rave is not None and a != "rave"):
             theirs = measured[task, other]
@@ -245,6 +286,38 @@ def report(args) -> str:
         f"RAVE's mean minus each other algorithm's, with {WELCH}.",
         ["task", "difference", *(f"at {f:,}" for f in at)],
         versus,
+    )
+    lines += section(
+        "Mean and interquartile mean (IQM) of the evaluation return over seeds, with 95 % "
+        f"percentile intervals from {BOOTSTRAP}; per task, at the budget and over the "
+        f"last quarter (each seed's evaluations after {tail_from:,} frames averaged first).",
+        ["task", "when", "algorithm", "seeds", "mean [95 % CI]", "IQM [95 % CI]"],
+        robust,
+    )
+    improves = []
+    for when in dict.fromkeys(w for w, _, _ in finals) if "rave" in study.algorithms else []:
+        for other in (a for a in study.algorithms if a != "rave"):
+            per_task = {
+                t.label: (finals[when, t.label, "rave"], finals[when, t.label, other])
+                for t in tasks(study)
+                if (when, t.label, "rave") in finals and (when, t.label, other) in finals
+            }
+            chosen = [(label, [pair]) for label, pair in per_task.items()]
+            if len(per_task) > 1:
+                chosen.append(("all tasks", list(per_task.values())))
+            for label, pairs in chosen:
+                xs, ys = zip(*pairs, strict=True)
+                improves.append(
+                    f"| {label} | {when} | rave > {other} | "
+                    + fmt_bootstrap(improvement_interval(list(xs), list(ys)), 2)
+                    + " |"
+                )
+    lines += section(
+        "The probability that a RAVE run's evaluation return beats another algorithm's "
+        "(ties count half; over all tasks: the mean over tasks), with a 95 % percentile "
+        f"interval from {BOOTSTRAP}; 0.5 is no difference.",
+        ["task", "when", "comparison", "P(rave > other) [95 % CI]"],
+        improves,
     )
     lines += section(
         "Value error: the critics' estimate of Q(s_t, pi(s_t)) minus the discounted "
