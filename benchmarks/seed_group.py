@@ -74,11 +74,15 @@ from torchrl_rave.trainers.seed_group import _gaussian_draw
 ROOT = Path(__file__).resolve().parents[1]
 
 
+#: the recipe overrides every learner is built with (``--preset`` sets the preset)
+OVERRIDES: list[str] = []
+
+
 def learners(algorithm: str, S: int, device):
     """S recipe learners of ``algorithm`` (seeds 0..S-1, normalisers fitted on random
-    data) and their config."""
-    agents = [recipe_agent(algorithm, [], device, seed)[0] for seed in range(S)]
-    return recipe_config([f"algorithm={algorithm}"]), agents
+    data) and their config, at :data:`OVERRIDES`."""
+    agents = [recipe_agent(algorithm, OVERRIDES, device, seed)[0] for seed in range(S)]
+    return recipe_config([f"algorithm={algorithm}", *OVERRIDES]), agents
 
 
 def separate_case(algorithm: str, S: int, device) -> Case:
@@ -394,8 +398,14 @@ def main(argv: list[str] | None = None) -> dict:
         "seed_group.py, in paired rounds (to benchmarks/seed_group_against.json unless "
         "--out is given)",
     )
+    parser.add_argument(
+        "--preset", default="cpu", help="the recipe preset the learners are built with "
+        "(`mujoco`: the field's sizes; to benchmarks/seed_group_<preset>.json unless --out "
+        "is given)",
+    )  # fmt: skip
     parser.add_argument("--out", type=Path, default=None)
     args = parser.parse_args(argv)
+    OVERRIDES[:] = [f"preset={args.preset}"]
     unknown = [a for a in args.algorithms if a not in GROUP_ALGORITHMS]
     if unknown:
         parser.error(f"--algorithms {unknown}: a seed group trains {', '.join(GROUP_ALGORITHMS)}")
@@ -412,7 +422,8 @@ def main(argv: list[str] | None = None) -> dict:
             "seed_group_streams.json" if args.streams_cost
             else "seed_group_against.json" if args.against
             else "seed_group_sampling.json" if args.sampling
-            else "seed_group.json"
+            else "seed_group.json" if args.preset == "cpu"
+            else f"seed_group_{args.preset}.json"
         )  # fmt: skip
         args.out = ROOT / "benchmarks" / name
     device = torch.device(args.device)
@@ -422,6 +433,7 @@ def main(argv: list[str] | None = None) -> dict:
         **provenance("seed_group.py", argv),
         "device": torch.cuda.get_device_name(device) if device.type == "cuda" else "cpu",
         "malloc": "keep_freed_memory" if malloc_kept else "default",
+        "preset": args.preset,
         **(
             streams_cost(args.algorithms, args.seeds, threads, device, args.seconds)
             if args.streams_cost

@@ -57,8 +57,9 @@ from torchrl.modules import MLP, Actor, ValueOperator
 from torchrl.objectives import DDPGLoss, SoftUpdate, ValueEstimators
 
 from torchrl_rave.recipe.agent import make_agent
-from torchrl_rave.recipe.config import check_config, world_model_sizes
+from torchrl_rave.recipe.config import check_config, override_keys, preset_of, world_model_sizes
 from torchrl_rave.recipe.memory import keep_freed_memory
+from torchrl_rave.recipe.schema import with_algorithm_preset
 from torchrl_rave.recipe.update import make_agent_step
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -246,8 +247,11 @@ def record_matmuls(run: Callable[[], object], steps: int = 1, device=None) -> Re
 
 # ------------------------------------------------------------------- the workloads
 def recipe_config(overrides: list[str]):
+    """The recipe's config for ``overrides``, as a run composes it (a preset's values for
+    the algorithm included)."""
     with initialize_config_dir(config_dir=str(ROOT / "recipes"), version_base="1.3"):
-        return compose("config", overrides=overrides)
+        cfg = compose("config", overrides=overrides)
+    return with_algorithm_preset(cfg, preset_of(overrides), override_keys(overrides))
 
 
 class _Spec:

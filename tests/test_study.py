@@ -570,3 +570,36 @@ def test_relogged_finds_a_second_start_in_the_losses(tmp_path):
     write("train/loss_critic", [(10, 1.0), (20, 2.0), (30, 3.0), (40, 4.0), (30, 3.5)])
     assert relogged(tmp_path) == (20, True)  # the first step twice; a value that changed
     assert relogged(tmp_path, "train/loss_critic") == (30, True)
+
+
+def test_calibration_sets_ours_beside_the_reference_run_here_and_the_published(tmp_path):
+    """Two SAC seeds of ours and of a reference implementation at 100k frames, by hand:
+    ours 1700 and 1900 (mean 1800, std 141), the reference's 1500 and 2500 (mean 2000,
+    std 707): ours meets TianShou's bar on Hopper (2613 - 991 = 1622) and is within the
+    reference's spread (2000 - 707 = 1293). Training episodes are each seed's mean per
+    10,000 frames, then the mean over seeds."""
+    results, figures = tmp_path / "results", tmp_path / "figures"
+    for seed, (ours, theirs) in enumerate([(1700, 1500), (1900, 2500)]):
+        write_cell(results, "sac", seed, {
+            "eval/return": [(50_000, 100), (100_000, ours)],
+            "eval/falling_rate": [(50_000, 1.0), (100_000, 0.0)],
+            "train/episode_reward": [(95_000, 10 * seed), (100_000, 30)],
+        })  # fmt: skip
+        ref = results / "tiny_reference" / "Hopper-v5" / "sac" / f"seed{seed}"
+        for metric, rows in (("eval/return", [(50_000, 200), (100_000, theirs)]),
+                             ("train/episode_reward", [(92_000, 100 + seed)])):  # fmt: skip
+            csv = ref / "reference" / "scalars" / f"{metric}.csv"
+            csv.parent.mkdir(parents=True, exist_ok=True)
+            csv.write_text("".join(f"{s},{v}\n" for s, v in rows))
+        (ref / "reference.json").write_text("{}")
+    config = write_study(tmp_path, frames=100_000, algorithms=["sac"],
+                         reference_runs="tiny_reference")  # fmt: skip
+    study.main(["report", "--config", str(config), "--results", str(results),
+                "--figures", str(figures)])  # fmt: skip
+    table = (figures / "tiny.md").read_text()
+    assert ("| Hopper-v5 | sac | 1800 ± 141 (2) | 2000 ± 707 (2) | 2613 ± 991 | meets the bar "
+            "1622; within the reference's spread (>= 1293) |") in table  # fmt: skip
+    # the last 10k bin: seed 0 (0 + 30) / 2 = 15, seed 1 (10 + 30) / 2 = 20 -> 17.5 -> 18
+    assert "| Hopper-v5 | sac | ours | " + "n/a | " * 9 + "18 |" in table
+    assert "| Hopper-v5 | sac | reference | " + "n/a | " * 9 + "100 |" in table
+    assert (figures / "tiny_Hopper-v5_calibration.png").is_file()

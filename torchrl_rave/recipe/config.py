@@ -285,6 +285,11 @@ def _check_curriculum(cfg: DictConfig, bad: set, problems: list[str]) -> None:
         problems.append(_invalid("curriculum.metric", c.metric, f"one of {evals}"))
 
 
+def preset_of(overrides: list[str]) -> str:
+    """The preset a command line's ``overrides`` choose (``cpu`` when none does)."""
+    return next((o.split("=", 1)[1] for o in overrides if o.startswith("preset=")), "cpu")
+
+
 def override_keys(overrides: list[str]) -> list[str]:
     """The dotted keys a hydra command line's ``overrides`` set (``a.b=1`` -> ``a.b``)."""
     from hydra.core.override_parser.overrides_parser import OverridesParser

@@ -274,7 +274,7 @@ def check_cells(cells: Sequence[Cell], config_dir: str | Path, config_name: str 
     from hydra import compose, initialize_config_dir
     from omegaconf import OmegaConf
 
-    from torchrl_rave.recipe.config import ConfigError, check_config, override_keys
+    from torchrl_rave.recipe.config import ConfigError, check_config, override_keys, preset_of
     from torchrl_rave.recipe.schema import with_algorithm_preset
 
     where: dict[str, list[Path]] = {}  # each problem, and the cells that have it
@@ -291,11 +291,8 @@ def check_cells(cells: Sequence[Cell], config_dir: str | Path, config_name: str 
                 continue
             overrides = [*cell.overrides, f"collector.total_frames={cell.frames}"]
             try:
-                preset = next(
-                    (o.split("=", 1)[1] for o in overrides if o.startswith("preset=")), "cpu"
-                )
                 cfg = compose(config_name, overrides=overrides)
-                cfg = with_algorithm_preset(cfg, preset, override_keys(overrides))
+                cfg = with_algorithm_preset(cfg, preset_of(overrides), override_keys(overrides))
                 check_config(cfg)
                 kwargs = cfg.env.kwargs
                 kwargs = None if kwargs is None else OmegaConf.to_container(kwargs)

@@ -45,15 +45,18 @@ def tasks(study: DictConfig) -> list[Task]:
 
 
 STUDY_KEYS = ("name", "tasks", "algorithms", "seeds", "frames", "overrides", "contrasts",
-              "report_at")  # fmt: skip
+              "report_at", "reference_runs")  # fmt: skip
 TASK_KEYS = ("label", "env", "overrides", "reference", "cells_from")
 
 
 def load_study(path: Path) -> DictConfig:
     """A study file, checked: its keys, its task entries and their distinct labels, its
     algorithms, seeds and budget, its ``contrasts`` (optional pairs of task labels the
-    report compares) and its ``report_at`` (optional frames at which the report's tables
-    read the metrics; half and all of the budget by default). Every problem is raised at
+    report compares), its ``report_at`` (optional frames at which the report's tables
+    read the metrics; half and all of the budget by default) and its ``reference_runs``
+    (optional: the directory under the results, laid out as the study's cells, of a
+    reference implementation's runs of the same tasks, algorithms and seeds, which the
+    report's calibration table sets beside the study's own). Every problem is raised at
     once, as one :class:`~torchrl_rave.recipe.config.ConfigError`."""
     from torchrl_rave.recipe.config import ALGORITHMS, ConfigError
 
