@@ -10,228 +10,34 @@ the curves of return, falling rate, value bias and RAVE's diagnostics.
 
 from __future__ import annotations
 
-import json
-from pathlib import Path
-
 import numpy as np
 from compare import REFERENCE
-from plot_curves import band_plot, seeds, study_figures
+from plot_curves import seeds, study_figures
+from study_calibration import calibration
+from study_tables import (
+    BOOTSTRAP,
+    RAVE_DIAGNOSTICS,
+    WELCH,
+    at_frame,
+    cells_of,
+    differences,
+    eval_episodes,
+    fmt_bootstrap,
+    group,
+    section,
+    series,
+    tail_means,
+)
 
-from torchrl_rave.recipe.runs import read_scalar, train_seconds
+from torchrl_rave.recipe.runs import train_seconds
 from torchrl_rave.recipe.stats import (
-    difference95,
     improvement_interval,
-    interval95,
     iqm,
     mean,
     stratified_interval,
     wilson_interval,
 )
-from torchrl_rave.recipe.studies import load_study, report_frames, result_dir, tasks
-
-RAVE_DIAGNOSTICS = ["rave_alpha", "wm_transition_mse", *(f"horizon_weight_h{h}" for h in range(4))]
-# metrics under an earlier name in cells that ran before the rename
-EARLIER_NAMES = {"train/rave_alpha": "train/alpha", "train/sac_temperature": "train/sac_alpha"}
-WELCH = (
-    "the 95 % interval of the difference (Welch's standard error, min(seeds) - 1 degrees "
-    "of freedom); an interval that contains 0 does not separate the two"
-)
-
-
-def fmt_interval(mean: float, half: float, sign: str = "", digits: int = 0) -> str:
-    """``mean ± half``, or ``mean (1 seed)`` where one seed leaves no interval (NaN)."""
-    value = f"{mean:{sign}.{digits}f}"
-    return value + (" (1 seed)" if np.isnan(half) else f" ± {half:.{digits}f}")
-
-
-BOOTSTRAP = (
-    "a stratified bootstrap (each task's seeds resampled within the task, 10,000 times, "
-    "seeded; `torchrl_rave.recipe.stats`, the rliable method)"
-)
-
-
-def fmt_bootstrap(estimate: tuple[float, float, float], digits: int = 0) -> str:
-    """``value [lo, hi]``, or ``value (no interval)`` where the bootstrap gives none."""
-    value, lo, hi = estimate
-    if np.isnan(lo):
-        return f"{value:.{digits}f} (no interval)"
-    return f"{value:.{digits}f} [{lo:.{digits}f}, {hi:.{digits}f}]"
-
-
-# TianShou's MuJoCo benchmark at 100k frames (gym v3, 10 seeds, 256 x 256, batch 256): mean
-# and std over seeds of the evaluation return. Theirs, not ours.
-PUBLISHED_100K = {
-    "Hopper": {"sac": (2613, 991), "td3": (597, 288), "ddpg": (904, 396)},
-    "Walker2d": {"sac": (1305, 795), "td3": (483, 174), "ddpg": (113, 78)},
-    "HalfCheetah": {"sac": (6515, 514), "td3": (5336, 376), "ddpg": (6308, 1011)},
-}
-# the bar a baseline must meet (the published mean minus one published std) and the
-# learners held to it
-CALIBRATED = ("sac", "td3")
-
-
-def calibration(study, results: Path, out: Path) -> list[str]:
-    """The calibration table and curves: per task and algorithm, the study's return at
-    its budget beside the reference implementation's runs (``reference_runs``) and the
-    published one, and whether the learner meets the bar (at least the published mean
-    minus one published std, and not below the reference run here by more than its own
-    seed spread); with the training-episode returns of both, per 10,000 frames."""
-    name = study.get("reference_runs", None)
-    if name is None:
-        return []
-    rows, training = [], []
-    bins = np.arange(0, study.frames, 10_000) + 10_000
-    for entry in tasks(study):
-        curves = {}
-        for algorithm in study.algorithms:
-            ours = group(study, results, entry.label, algorithm)
-            refs = [d for s in study.seeds
-                    if ((d := results / name / entry.label / algorithm / f"seed{s}") / "reference.json").exists()]  # fmt: skip
-            published = PUBLISHED_100K.get(entry.env.split("-")[0], {}).get(algorithm)
-            if not ours and not refs:
-                continue
-            ends = [at_frame(runs, "eval/return", study.frames) if runs else None
-                    for runs in (ours, refs)]  # fmt: skip
-            cells = [f"{v.mean():.0f} ± {v.std(ddof=1):.0f} ({len(v)})" if v is not None and
-                     len(v) > 1 else "n/a" for v in ends]  # fmt: skip
-            pub = f"{published[0]} ± {published[1]}" if published else "n/a"
-            verdict = "n/a"
-            if algorithm in CALIBRATED and published and ends[0] is not None:
-                bar = published[0] - published[1]
-                checks = [f"{'meets' if ends[0].mean() >= bar else 'misses'} the bar {bar}"]
-                if ends[1] is not None and len(ends[1]) > 1:
-                    floor = ends[1].mean() - ends[1].std(ddof=1)
-                    checks.append(f"{'within' if ends[0].mean() >= floor else 'below'} the "
-                                  f"reference's spread (>= {floor:.0f})")  # fmt: skip
-                verdict = "; ".join(checks)
-            rows.append(f"| {entry.label} | {algorithm} | {cells[0]} | {cells[1]} | {pub} | "
-                        f"{verdict} |")  # fmt: skip
-            per_bin = []
-            for runs in (ours, refs):
-                if not runs:
-                    per_bin.append(["n/a"] * len(bins))
-                    continue
-                means = []
-                for r in runs:
-                    steps, values = read_metric(r, "train/episode_reward")
-                    idx = np.digitize(steps, bins, right=True)
-                    means.append([values[idx == i].mean() if (idx == i).any() else np.nan
-                                  for i in range(len(bins))])  # fmt: skip
-                columns = np.array(means).T  # per bin: each seed's mean (NaN: no episode)
-                per_bin.append([f"{c[~np.isnan(c)].mean():.0f}" if (~np.isnan(c)).any()
-                                else "n/a" for c in columns])  # fmt: skip
-            for who, cols in zip(("ours", "reference"), per_bin, strict=True):
-                training.append(
-                    f"| {entry.label} | {algorithm} | {who} | " + " | ".join(cols) + " |"
-                )
-            for who, runs in (("ours", ours), ("reference", refs)):
-                if runs:
-                    steps, values = series(runs, "eval/return", study.frames)
-                    curves[f"{algorithm}, {who} ({seeds(len(runs))})"] = (
-                        steps, values.mean(0), values.min(0), values.max(0))  # fmt: skip
-        if curves:
-            band_plot(curves, out / f"{study.name}_{entry.label}_calibration.png",
-                      xlabel="environment frames",
-                      ylabel="eval/return (mean, band: min-max over seeds)",
-                      title=f"{entry.label}: ours and the reference implementation run here")  # fmt: skip
-    lines = section(
-        f"Calibration at {study.frames:,} frames: the evaluation return, mean ± std over seeds "
-        "(seeds in brackets), of this study's cells, of the reference implementation run here "
-        f"on the same task and seeds (`results/{name}`), and as published (TianShou's "
-        "benchmark, gym v3, 10 seeds; theirs, not ours). The bar: at least the published "
-        "mean minus one published std, and not below the reference run here by more than its "
-        "own seed spread (its mean minus its std).",
-        ["task", "algorithm", "ours", "reference, run here", "published", "verdict"],
-        rows,
-    )
-    return lines + section(
-        "Training-episode returns of ours and the reference, mean over seeds of each seed's "
-        "mean per 10,000 frames (the batches' means of the episodes ending in them).",
-        ["task", "algorithm", "run", *(f"to {b // 1000}k" for b in bins)],
-        training,
-    )
-
-
-def group(study, results: Path, task: str, algorithm: str) -> list[Path]:
-    dirs = [result_dir(results, study, task, algorithm, s) for s in study.seeds]
-    return [d for d in dirs if (d / "cell.json").exists()]
-
-
-def eval_episodes(run: Path) -> int:
-    """Episodes per evaluation of a finished cell, from the config in its cell.json."""
-    return int(json.loads((run / "cell.json").read_text())["config"]["eval"]["episodes"])
-
-
-def read_metric(run: Path, metric: str) -> tuple[np.ndarray, np.ndarray]:
-    """:func:`read_scalar`, or the metric's earlier name in a cell that logged that one."""
-    try:
-        return read_scalar(run, metric)
-    except FileNotFoundError:
-        if metric not in EARLIER_NAMES:
-            raise
-        return read_scalar(run, EARLIER_NAMES[metric])
-
-
-def series(
-    runs: list[Path], metric: str, until: int | None = None
-) -> tuple[np.ndarray, np.ndarray]:
-    """Per run, ``metric`` at the steps every run logged (up to ``until`` frames)."""
-    data = [read_metric(r, metric) for r in runs]
-    if until is not None:
-        data = [(s[s <= until], v[s <= until]) for s, v in data]
-    common = sorted(set.intersection(*(set(s.tolist()) for s, _ in data)))
-    return np.array(common), np.stack([v[np.searchsorted(s, common)] for s, v in data])
-
-
-def at_frame(runs: list[Path], metric: str, frame: int) -> np.ndarray | None:
-    """Per run: ``metric`` logged at exactly ``frame``; ``None`` when no run is given or
-    one of them lacks it (cells from before the metric existed)."""
-    if not runs:
-        return None
-    try:
-        steps, values = series(runs, metric)
-    except FileNotFoundError:
-        return None
-    hit = np.flatnonzero(steps == frame)
-    return values[:, hit[0]] if hit.size else None
-
-
-def tail_means(
-    runs: list[Path], metric: str, after: int, until: int | None = None
-) -> np.ndarray | None:
-    """Per run: the mean of ``metric``'s values logged after ``after`` frames (up to
-    ``until``)."""
-    try:
-        steps, values = series(runs, metric, until)
-    except FileNotFoundError:
-        return None
-    last = steps > after
-    return values[:, last].mean(1) if last.any() else None
-
-
-def cells_of(values: list[np.ndarray | None], digits: int = 0) -> list[str]:
-    return ["n/a" if v is None else fmt_interval(*interval95(v), digits=digits) for v in values]
-
-
-def differences(a: list, b: list, digits: int = 0) -> list[str] | None:
-    """``a - b`` with its Welch interval per column, or ``None`` when a column lacks data."""
-    if any(v is None for v in a + b):
-        return None
-    return [fmt_interval(*difference95(x, y), "+", digits) for x, y in zip(a, b, strict=True)]
-
-
-def section(caption: str, columns: list[str], rows: list[str]) -> list[str]:
-    """A markdown table of ``rows`` under its caption and ``columns``; nothing without rows."""
-    if not rows:
-        return []
-    return [
-        "",
-        caption,
-        "",
-        "| " + " | ".join(columns) + " |",
-        "| --- " * len(columns) + "|",
-        *rows,
-    ]
+from torchrl_rave.recipe.studies import load_study, report_frames, tasks
 
 
 def report(args) -> str:
