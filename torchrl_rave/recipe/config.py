@@ -287,7 +287,10 @@ def _check_curriculum(cfg: DictConfig, bad: set, problems: list[str]) -> None:
 
 def preset_of(overrides: list[str]) -> str:
     """The preset a command line's ``overrides`` choose (``cpu`` when none does)."""
-    return next((o.split("=", 1)[1] for o in overrides if o.startswith("preset=")), "cpu")
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+
+    parsed = OverridesParser.create().parse_overrides(overrides)
+    return next((o.value() for o in parsed if o.key_or_group == "preset"), "cpu")
 
 
 def override_keys(overrides: list[str]) -> list[str]:

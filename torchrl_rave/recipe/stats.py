@@ -109,12 +109,13 @@ def stratified_interval(
     """
     from scipy.stats import bootstrap
 
-    value = float(statistic(np.concatenate([np.ravel(s) for s in samples])))
-    pooled = np.concatenate([np.ravel(s) for s in samples])
+    samples = [np.ravel(s) for s in samples]
+    pooled = np.concatenate(samples)
+    value = float(statistic(pooled))
     if min(len(s) for s in samples) < 2 or np.all(pooled == pooled[0]):
         return value, float("nan"), float("nan")
     result = bootstrap(
-        [np.ravel(s) for s in samples],
+        samples,
         lambda *xs, axis: statistic(np.concatenate(xs, axis=axis), axis=axis),
         n_resamples=BOOTSTRAP_RESAMPLES,
         vectorized=True,
