@@ -8,6 +8,7 @@ import rave_mujoco
 import terms_env  # noqa: F401  registers LevelPendulum-v0
 from test_recipe import TINY, make_cfg
 
+from torchrl_rave.recipe import loop
 from torchrl_rave.recipe.config import ConfigError, check_config
 from torchrl_rave.recipe.runs import read_scalar
 from torchrl_rave.trainers import Curriculum
@@ -47,19 +48,47 @@ def test_bad_curriculum_keys_are_named():
 def test_each_stage_builds_its_envs_and_a_resume_continues_the_stage(tmp_path):
     """Thresholds every return passes: the stage moves on at each evaluation (every 100
     frames) but the run's last. The evaluation return per step is the level the eval env
-    was built with: 1 at 100 frames, 2 at 200 (the end of the first run, which stays in
-    stage 1), and after the resume 2 at 300 (the stage came back from the checkpoint) and
-    3 at 400."""
+    was built with: 4 at 100 frames (the first stage's, not the env's default of 1), 2 at
+    200 (the end of the first run, which stays in stage 1), and after the resume 2 at 300
+    (the stage came back from the checkpoint) and 3 at 400."""
     run = tmp_path / "run"
     args = [*TINY, "env.name=terms_env:LevelPendulum-v0", "algorithm=ddpg", "eval.interval=100",
             "eval.episodes=1", "checkpoint.interval=100", "curriculum.kwarg=level",
-            "curriculum.stages=[1.0,2.0,3.0]", "curriculum.thresholds=[-1e9,-1e9]"]  # fmt: skip
+            "curriculum.stages=[4.0,2.0,3.0]", "curriculum.thresholds=[-1e9,-1e9]"]  # fmt: skip
     rave_mujoco.train(make_cfg(*args, "collector.total_frames=200"), str(run))
     rave_mujoco.train(make_cfg(*args, f"resume={run}", "collector.total_frames=400"), str(run))
     steps, returns = read_scalar(run, "eval/return")
     _, lengths = read_scalar(run, "eval/episode_length")
     assert steps.tolist() == [100, 200, 300, 400]
-    assert (returns / lengths).tolist() == pytest.approx([1.0, 2.0, 2.0, 3.0])
+    assert (returns / lengths).tolist() == pytest.approx([4.0, 2.0, 2.0, 3.0])
     # the stage each batch was collected in
     steps, stages = read_scalar(run, "train/curriculum_stage")
     assert steps.tolist() == [100, 200, 300, 400] and stages.tolist() == [0, 1, 1, 2]
+
+
+def test_the_first_stage_builds_the_training_and_evaluation_envs(tmp_path, monkeypatch):
+    """The direct backend's training env and the evaluation env carry the first stage's
+    value from the start (they were once built from the config alone, so stage 0 ran at
+    the env's default), and a keyword the env does not take fails before any frame."""
+    built = []
+    make_env = loop.make_env
+
+    def recording_make_env(cfg, *args, **kwargs):
+        built.append(dict(cfg.env.kwargs or {}))
+        return make_env(cfg, *args, **kwargs)
+
+    monkeypatch.setattr(loop, "make_env", recording_make_env)
+    args = [*TINY, "env.name=terms_env:LevelPendulum-v0", "algorithm=ddpg", "eval.interval=100",
+            "eval.episodes=1", "curriculum.kwarg=level", "curriculum.stages=[4.0,2.0]",
+            "curriculum.thresholds=[1e9]", "collector.total_frames=200"]  # fmt: skip
+    rave_mujoco.train(make_cfg(*args), str(tmp_path / "run"))
+    assert built == [{"level": 4.0}, {"level": 4.0}]  # training env, evaluation env
+    steps, returns = read_scalar(tmp_path / "run", "eval/return")
+    _, lengths = read_scalar(tmp_path / "run", "eval/episode_length")
+    assert (returns / lengths).tolist() == pytest.approx([4.0, 4.0])
+    monkeypatch.setattr(loop, "make_env", make_env)
+    with pytest.raises(Exception, match="speed") as err:
+        rave_mujoco.train(make_cfg(*args[:-4], "curriculum.kwarg=speed",
+                                   "curriculum.stages=[4.0,2.0]", "curriculum.thresholds=[1e9]",
+                                   "collector.total_frames=200"), str(tmp_path / "bad"))  # fmt: skip
+    assert not any((tmp_path / "bad").glob("*/scalars/train/*.csv")), err.value

@@ -4,6 +4,8 @@ single run, and a killed group resumes."""
 from __future__ import annotations
 
 import csv
+import json
+import shutil
 from pathlib import Path
 
 import pytest
@@ -11,7 +13,11 @@ import torch
 from test_recipe import TINY, kill_after_first_checkpoint, make_cfg, undocumented_metrics
 
 from torchrl_rave.recipe.agent import load_policy, make_replay_buffer
-from torchrl_rave.recipe.checkpoint import RunCheckpoint
+from torchrl_rave.recipe.checkpoint import (
+    DamagedCheckpoint,
+    DamagedCheckpointWarning,
+    RunCheckpoint,
+)
 from torchrl_rave.recipe.config import ConfigError
 from torchrl_rave.recipe.loop import train
 from torchrl_rave.recipe.runs import read_scalar
@@ -142,3 +148,50 @@ def test_kill_and_resume_continues_every_seed(tmp_path):
         assert len(rb) == 1200
         assert torch.equal(rb[:f0]["observation"], obs)
         assert c.read("optim_critic")["state"][0]["step"].item() == steps + new_updates
+
+
+def test_a_damaged_group_directory_is_named(tmp_path):
+    """One seed's damaged newest checkpoint is set aside with a warning that names it
+    (as a single run's resume does); a group file that is not one, or that names a seed
+    with no directory, is named before anything is written; with nothing in common the
+    error says which checkpoints are damaged and why."""
+    group = [*PENDULUM, "algorithm=ddpg", "seeds=[0,1]", "collector.total_frames=300",
+             "checkpoint.interval=100", "eval.interval=300"]  # fmt: skip
+    trained = tmp_path / "trained"
+    train(make_cfg(*group), str(trained))
+
+    def copy(name):
+        shutil.copytree(trained, tmp_path / name)
+        return tmp_path / name
+
+    def damage(checkpoint):
+        (checkpoint / "checksums.json").write_text("{}")
+
+    run = copy("one_damaged")
+    damage(run / "seed1" / "checkpoints" / "checkpoint-000000000300")
+    more = make_cfg(*group, "collector.total_frames=400", f"resume={run}")
+    with pytest.warns(DamagedCheckpointWarning, match="seed1/checkpoints/checkpoint-0+300.*"
+                      "resumes from frame 200"):  # fmt: skip
+        train(more, "unused")
+    assert (run / "seed1" / "checkpoints" / "damaged" / "checkpoint-000000000300").is_dir()
+    assert RunCheckpoint(run / "seed1").read("counters")["frames"] == 400
+
+    run = copy("all_damaged")
+    for checkpoint in RunCheckpoint(run / "seed1").checkpoints():
+        damage(checkpoint)
+    with pytest.raises(FileNotFoundError, match="no checkpoint that every seed .* damaged: "
+                       ".*seed1/checkpoints/checkpoint-0+300.* is unreadable"):  # fmt: skip
+        train(make_cfg(*group, f"resume={run}"), "unused")
+
+    run = copy("bad_file")
+    (run / "group.json").write_text("{not json")
+    with pytest.raises(DamagedCheckpoint, match="group.json is not a seed group's file"):
+        train(make_cfg(*group, f"resume={run}"), "unused")
+
+    run = copy("unknown_seed")
+    data = json.loads((run / "group.json").read_text())
+    data["config"]["seeds"] = [0, 1, 7]
+    (run / "group.json").write_text(json.dumps(data))
+    with pytest.raises(ConfigError, match=r"names seed\(s\) \[7\] that have no seed<s>/"):
+        train(make_cfg(*group[:-3], "seeds=[0,1,7]", f"resume={run}"), "unused")
+    assert not (run / "seed7").exists()

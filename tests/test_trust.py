@@ -8,6 +8,7 @@ from __future__ import annotations
 import json
 import os
 import shutil
+import sqlite3
 import time
 from pathlib import Path
 
@@ -27,6 +28,7 @@ from torchrl_rave.recipe.checkpoint import (
     config_for_resume,
 )
 from torchrl_rave.recipe.config import ConfigError, check_config
+from torchrl_rave.recipe.runs import read_scalar, relogged, train_seconds
 from torchrl_rave.recipe.schema import defaults
 from torchrl_rave.recipe.trust import UntrustedRunConfig, reach_ray_address
 
@@ -176,9 +178,17 @@ class TestLinks:
         assert target.read_text() == "keep me\n"
 
     def test_a_linked_component_directory_is_refused(self, run, tmp_path):
+        """A link out of the run directory is refused before any checkpoint is chosen;
+        one that stays inside it makes only its checkpoint damaged (a checkpoint holds no
+        links), and the older one is used."""
         policy = component(latest(run), "policy")
         shutil.move(policy, tmp_path / "elsewhere")
         policy.symlink_to(tmp_path / "elsewhere")
+        with pytest.raises(UnsafeRunDirectory, match="policy is a symbolic link to .*outside"):
+            load_policy(run)
+        shutil.move(tmp_path / "elsewhere", run / "elsewhere")
+        policy.unlink()
+        policy.symlink_to(run / "elsewhere")
         with pytest.warns(DamagedCheckpointWarning, match="symbolic link"):
             load_policy(run)
 
@@ -210,7 +220,77 @@ class TestLinks:
             check_config(make_cfg(*RUN, "logger.exp_name=../x"))
 
 
+class TestReaders:
+    """Every reader of a run directory, not only training, refuses links out of it."""
+
+    def test_a_linked_mlflow_database_is_never_opened(self, run, tmp_path):
+        """The probe's attack: with no CSV metrics, ``read_scalar`` opened ``mlflow.db``
+        through a planted link and MLflow wrote its tables into the linked database."""
+        marker = tmp_path / "app.db"
+        with sqlite3.connect(marker) as db:
+            db.execute("CREATE TABLE users (name TEXT)")
+            db.execute("INSERT INTO users VALUES ('alice')")
+        before = marker.read_bytes()
+        shutil.rmtree(run / "ddpg")
+        (run / "mlflow.db").symlink_to(marker)
+        for read in (lambda: read_scalar(run, "eval/return"), lambda: train_seconds(run)):
+            with pytest.raises(UnsafeRunDirectory, match="mlflow.db is a symbolic link"):
+                read()
+        assert marker.read_bytes() == before
+
+    def test_a_linked_metric_file_is_not_read(self, run, tmp_path):
+        outside = tmp_path / "secret.csv"
+        outside.write_text("100,42.0\n")
+        csv = run / "ddpg" / "scalars" / "eval" / "return.csv"
+        csv.unlink()
+        csv.symlink_to(outside)
+        for read in (lambda: read_scalar(run, "eval/return"), lambda: relogged(run, "eval/*")):
+            with pytest.raises(UnsafeRunDirectory, match="return.csv is a symbolic link"):
+                read()
+
+    def test_load_policy_and_the_saved_config_refuse_a_link_out(self, run, tmp_path):
+        (tmp_path / "outside").mkdir()
+        (run / "notes").symlink_to(tmp_path / "outside")
+        with pytest.raises(UnsafeRunDirectory, match="notes is a symbolic link"):
+            load_policy(run)
+        with pytest.raises(UnsafeRunDirectory, match="notes is a symbolic link"):
+            config_for_resume(run, [f"resume={run}"], defaults())
+        (run / "notes").unlink()
+        (run / "notes").symlink_to(run / "checkpoints")  # a link that stays inside is fine
+        load_policy(run)
+
+
 class TestSavedConfig:
+    def test_a_saved_interpolation_is_never_resolved(self, run, tmp_path, monkeypatch):
+        """The probe's attack: a saved ``logger.exp_name: ${oc.env:TOKEN}`` wrote the
+        user's environment variable into the run directory on resume."""
+        monkeypatch.setenv("PROBE_TOKEN", "s3cret-value")
+        edit_config(run, **{"logger.exp_name": "${oc.env:PROBE_TOKEN}"})
+        with pytest.raises(UntrustedRunConfig, match="logger.exp_name='\\$\\{oc.env:PROBE_T"):
+            config_for_resume(run, [f"resume={run}"], defaults())
+        for trust in (False, True):  # an interpolation is refused whatever the trust
+            with pytest.raises(UntrustedRunConfig, match="an interpolation"):
+                load_policy(run, trust=trust)
+        more = [f"resume={run}", "collector.total_frames=400"]
+        with pytest.raises(UntrustedRunConfig, match="an interpolation"):
+            rave_mujoco.train(make_cfg(*RUN, *more), str(run))
+        found = [p for p in run.rglob("*") if "s3cret" in p.name or (
+                 p.is_file() and b"s3cret" in p.read_bytes())]  # fmt: skip
+        assert found == []
+        # the caller's own value replaces the saved one
+        cfg = config_for_resume(run, [*more, "logger.exp_name=ddpg"], defaults())
+        assert cfg.logger.exp_name == "ddpg"
+
+    def test_a_saved_remote_logger_is_not_contacted(self, run):
+        edit_config(run, **{"logger.backend": "wandb", "logger.project": "someone-elses"})
+        with pytest.raises(UntrustedRunConfig, match="logger.backend='wandb', which logs in "
+                           "to W&B and writes to its project 'someone-elses'"):  # fmt: skip
+            config_for_resume(run, [f"resume={run}"], defaults())
+        with pytest.raises(UntrustedRunConfig, match="logger.backend"):
+            load_agent(run)
+        cfg = config_for_resume(run, [f"resume={run}", "logger.backend=csv"], defaults())
+        assert cfg.logger.backend == "csv"
+
     def test_a_module_env_name_is_not_imported_by_load_policy(self, run, tmp_path, monkeypatch):
         marker = tmp_path / "imported"
         (run / "evilmod.py").write_text(f"import os\nos.mkdir({str(marker)!r})\n")

@@ -172,14 +172,21 @@ def load_agent(
     a module (``env.name="module:EnvId"``) or open a file by name (a string in
     ``env.kwargs``) raises :class:`~torchrl_rave.recipe.trust.UntrustedRunConfig` unless
     ``trust=True`` says that the run directory is trusted (:mod:`torchrl_rave.recipe.trust`)."""
-    from torchrl_rave.recipe.checkpoint import RunCheckpoint, missing_checkpoint
-    from torchrl_rave.recipe.trust import check_trusted
+    from torchrl_rave.recipe.checkpoint import (
+        RunCheckpoint,
+        check_run_directory,
+        missing_checkpoint,
+    )
+    from torchrl_rave.recipe.trust import check_plain_data, check_trusted
 
+    check_run_directory(run_dir)
     checkpoint = RunCheckpoint(run_dir)
     path = checkpoint.latest()  # the newest undamaged one
     if path is None:
         raise missing_checkpoint(run_dir)
-    cfg = OmegaConf.create(checkpoint.read("config", path))
+    data = checkpoint.read("config", path)
+    check_plain_data(data, set(), f"load_agent({str(run_dir)!r})")
+    cfg = OmegaConf.create(data)
     if "ray" in cfg:
         cfg.ray.address = None  # loading a policy connects nowhere
     if not trust:

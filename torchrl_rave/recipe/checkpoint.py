@@ -33,6 +33,7 @@ __all__ = [
     "config_for_resume",
     "exclusive_run",
     "missing_checkpoint",
+    "read_group_file",
     "saved_config",
 ]
 
@@ -448,12 +449,8 @@ class RunCheckpoint:
                 damaged.append((path, str(err)))
                 continue
             if damaged:
-                if set_aside:  # so that neither a later load nor the pruning meets them
-                    if (self.root / "damaged").is_symlink():
-                        raise UnsafeRunDirectory(f"{self.root / 'damaged'} is a symbolic link")
-                    (self.root / "damaged").mkdir(exist_ok=True)
-                    for bad, _ in damaged:
-                        os.replace(bad, self.root / "damaged" / bad.name)
+                if set_aside:
+                    self.set_aside([bad for bad, _ in damaged])
                 moved = " (moved to checkpoints/damaged/)" if set_aside else ""
                 warnings.warn(
                     f"skipped damaged checkpoint(s){moved}: "
@@ -468,6 +465,15 @@ class RunCheckpoint:
                 f"{'; '.join(why for _, why in damaged)}"
             )
         return None
+
+    def set_aside(self, paths: list[Path]) -> None:
+        """Moves damaged checkpoints to ``checkpoints/damaged/``, so that neither a later
+        load nor the pruning meets them."""
+        if (self.root / "damaged").is_symlink():
+            raise UnsafeRunDirectory(f"{self.root / 'damaged'} is a symbolic link")
+        (self.root / "damaged").mkdir(exist_ok=True)
+        for bad in paths:
+            os.replace(bad, self.root / "damaged" / bad.name)
 
     def config(self) -> dict:
         """The config stored in the latest checkpoint, read without loading anything else."""
@@ -547,10 +553,33 @@ def newest_frame(run_dir: str | Path) -> int | None:
     return int(saved[-1].name.removeprefix(PREFIX)) if saved else None
 
 
+def read_group_file(run_dir: str | Path) -> dict:
+    """The config a seed group was last saved with (``<run_dir>/group.json``), as plain
+    data; a file that is not a group's (malformed JSON, no ``config``, seeds that are not
+    distinct non-negative integers) is named, with what it should hold."""
+    path = Path(run_dir) / "group.json"
+    if path.is_symlink():
+        raise UnsafeRunDirectory(f"{path} is a symbolic link; a run directory holds none")
+    try:
+        cfg = json.loads(path.read_text())["config"]
+        seeds = cfg["seeds"]
+        ok = isinstance(seeds, list) and seeds and len(set(seeds)) == len(seeds)
+        if not ok or not all(type(s) is int and s >= 0 for s in seeds):
+            raise ValueError(f"seeds={seeds!r} is not a list of distinct integers >= 0")
+    except (ValueError, KeyError, TypeError) as err:
+        raise DamagedCheckpoint(
+            f"{path} is not a seed group's file ({type(err).__name__}: {err}); it holds "
+            '{"config": {..., "seeds": [...]}} as the group wrote it: restore it from a copy '
+            "of the run directory"
+        ) from None
+    return cfg
+
+
 def _group_seeds(run_dir: Path) -> list[int] | None:
     """The seeds of the seed group whose directory ``run_dir`` is, or ``None``."""
-    group_file = run_dir / "group.json"
-    return json.loads(group_file.read_text())["config"]["seeds"] if group_file.is_file() else None
+    if not (run_dir / "group.json").exists() and not (run_dir / "group.json").is_symlink():
+        return None
+    return read_group_file(run_dir)["seeds"]
 
 
 def missing_checkpoint(run_dir: str | Path) -> FileNotFoundError:
@@ -575,18 +604,26 @@ def missing_checkpoint(run_dir: str | Path) -> FileNotFoundError:
     return FileNotFoundError(f"no checkpoint under {Path(run_dir) / 'checkpoints'}")
 
 
-def saved_config(run_dir: str | Path, defaults: DictConfig | None = None) -> DictConfig:
+def saved_config(
+    run_dir: str | Path, defaults: DictConfig | None = None, given: set[str] | None = None
+) -> DictConfig:
     """The config a run (or a seed group, ``seeds=``) was saved with; keys added to
-    ``defaults`` since take their defaults."""
-    if (Path(run_dir) / "group.json").is_file():
-        from torchrl_rave.recipe.group import group_config
+    ``defaults`` since take their defaults. It is read as data: a link out of the run
+    directory, and an interpolation in the saved values (except at the keys in
+    ``given``, which the caller sets itself), are refused
+    (:func:`~torchrl_rave.recipe.trust.check_plain_data`)."""
+    from torchrl_rave.recipe.trust import check_plain_data
 
-        saved = OmegaConf.create(group_config(run_dir))
-        return saved if defaults is None else OmegaConf.merge(defaults, saved)
-    checkpoint = RunCheckpoint(run_dir)
-    if not checkpoint.checkpoints():  # none at all (a damaged one is named by config())
-        raise missing_checkpoint(run_dir)
-    saved = OmegaConf.create(checkpoint.config())
+    check_run_directory(run_dir)
+    if _group_seeds(Path(run_dir)) is not None:
+        data = read_group_file(run_dir)
+    else:
+        checkpoint = RunCheckpoint(run_dir)
+        if not checkpoint.checkpoints():  # none at all (a damaged one is named by config())
+            raise missing_checkpoint(run_dir)
+        data = checkpoint.config()
+    check_plain_data(data, given or set(), str(run_dir))
+    saved = OmegaConf.create(data)
     return saved if defaults is None else OmegaConf.merge(defaults, saved)
 
 
@@ -600,8 +637,8 @@ def config_for_resume(
     ``overrides`` set its key (:mod:`torchrl_rave.recipe.trust`)."""
     from torchrl_rave.recipe.trust import check_trusted
 
-    saved = saved_config(run_dir, defaults)
     given = {o.split("=", 1)[0].lstrip("+~") for o in overrides}
+    saved = saved_config(run_dir, defaults, given)
     check_trusted(
         saved,
         given,

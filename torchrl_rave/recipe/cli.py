@@ -48,6 +48,11 @@ def run_job(cfg: DictConfig) -> float:
     run_dir = HydraConfig.get().runtime.output_dir
     try:
         overrides = list(HydraConfig.get().overrides.task)
+        if "resume" in override_keys(overrides) and not cfg.resume:
+            raise ConfigError([
+                f"resume={cfg.resume!r}: resume= takes the run directory to continue "
+                "(resume=outputs/<date>/<time>); leave it out to start a new run"
+            ])  # fmt: skip
         if cfg.resume:
             try:
                 cfg = config_for_resume(cfg.resume, overrides, defaults())

@@ -283,7 +283,11 @@ def stop_run(collector, save_checkpoint: Callable[[], object]) -> str:
     returns what its error message says of the checkpoint: where it is, or, when writing
     it failed too, why (the run's own error is never hidden behind that failure)."""
     try:
-        where = f"checkpoint {save_checkpoint()} holds everything up to that frame"
+        saved = save_checkpoint()
+        if isinstance(saved, list):  # a seed group's, one per seed
+            where = f"checkpoints {', '.join(map(str, saved))} hold everything up to that frame"
+        else:
+            where = f"checkpoint {saved} holds everything up to that frame"
     except Exception as err:  # noqa: BLE001 (the run's own error must not be lost)
         where = f"the checkpoint could not be written ({type(err).__name__}: {err})"
     shutdown_quietly(collector)

@@ -185,7 +185,7 @@ def distill_run(
     out.mkdir(parents=True, exist_ok=True)
     RunCheckpoint(out).save(
         int(counters["frames"]),
-        config=OmegaConf.to_container(cfg),
+        config=OmegaConf.to_container(cfg, resolve=True),
         counters=counters,
         replay_buffer=rb,
         logger={},

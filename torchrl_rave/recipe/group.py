@@ -25,6 +25,7 @@ import contextlib
 import json
 import os
 import time
+import warnings
 from collections import defaultdict
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -43,7 +44,13 @@ from torchrl_rave.recipe.agent import (
     make_seed_group,
     q_at_points,
 )
-from torchrl_rave.recipe.checkpoint import PREFIX, DamagedCheckpoint, RunCheckpoint
+from torchrl_rave.recipe.checkpoint import (
+    PREFIX,
+    DamagedCheckpoint,
+    DamagedCheckpointWarning,
+    RunCheckpoint,
+    read_group_file,
+)
 from torchrl_rave.recipe.collect import (
     NonFiniteEnvOutput,
     StopRequest,
@@ -103,12 +110,12 @@ def check_group(cfg: DictConfig) -> list[str]:
 
 def group_config(run_dir: str | Path) -> dict:
     """The config a group was last saved with (``<run_dir>/group.json``), as a dict."""
-    return json.loads((Path(run_dir) / GROUP_FILE).read_text())["config"]
+    return read_group_file(run_dir)
 
 
 def _write_group_file(run_dir: Path, cfg: DictConfig) -> None:
     tmp = run_dir / f".{GROUP_FILE}.tmp"
-    tmp.write_text(json.dumps({"config": OmegaConf.to_container(cfg)}, indent=1))
+    tmp.write_text(json.dumps({"config": OmegaConf.to_container(cfg, resolve=True)}, indent=1))
     os.replace(tmp, run_dir / GROUP_FILE)
 
 
@@ -139,23 +146,40 @@ def _seed_config(cfg: DictConfig, seed: int) -> DictConfig:
 
 
 def _common_checkpoint(seeds: list[_Seed]) -> int:
-    """The newest frame count every seed has an undamaged checkpoint of."""
-    common = None
+    """The newest frame count every seed has an undamaged checkpoint of. Damaged
+    checkpoints newer than it are set aside (``checkpoints/damaged/``) with a warning that
+    names them, as a single run's resume does; with none in common, the error names each
+    damaged one and why."""
+    common, damaged = None, []
     for s in seeds:
         frames = set()
         for path in s.checkpoint.checkpoints():
             try:
                 s.checkpoint.verify(path)
-            except DamagedCheckpoint:  # skipped, as RunCheckpoint.load skips it
+            except DamagedCheckpoint as err:  # skipped, as RunCheckpoint.load skips it
+                damaged.append((s, path, str(err)))
                 continue
             frames.add(int(path.name[len(PREFIX) :]))
         common = frames if common is None else common & frames
     if not common:
+        why = f"; damaged: {'; '.join(r for *_, r in damaged)}" if damaged else ""
         raise FileNotFoundError(
             "no checkpoint that every seed of the group has: resume needs one "
-            f"(under {[str(s.dir) for s in seeds]})"
+            f"(under {[str(s.dir) for s in seeds]}){why}"
         )
-    return max(common)
+    frame = max(common)
+    newer = [(s, p, r) for s, p, r in damaged if int(p.name[len(PREFIX) :]) > frame]
+    if newer:
+        for s, path, _ in newer:
+            s.checkpoint.set_aside([path])
+        warnings.warn(
+            f"skipped damaged checkpoint(s) (moved to checkpoints/damaged/): "
+            f"{'; '.join(r for *_, r in newer)}; the group resumes from frame {frame}, the "
+            "newest that every seed has",
+            DamagedCheckpointWarning,
+            stacklevel=3,
+        )
+    return frame
 
 
 def train_group(cfg: DictConfig, run_dir: str) -> dict[str, float]:
@@ -172,6 +196,13 @@ def train_group(cfg: DictConfig, run_dir: str) -> dict[str, float]:
             raise ConfigError([
                 f"resume={str(root)!r} holds one run, not a seed group ({GROUP_FILE} is "
                 "missing): resume it without seeds=, or start a new group elsewhere"
+            ])  # fmt: skip
+        missing = [s for s in cfg.seeds if not (root / f"seed{s}").is_dir()]
+        if missing:
+            raise ConfigError([
+                f"resume={str(root)!r}: {GROUP_FILE} names seed(s) {missing} that have no "
+                f"seed<s>/ directory under it; the file was edited, or a seed's directory "
+                "removed: restore it from a copy of the run directory"
             ])  # fmt: skip
         saved = OmegaConf.create(group_config(root))
         if list(saved.seeds) != list(cfg.seeds):
@@ -235,17 +266,19 @@ def train_group(cfg: DictConfig, run_dir: str) -> dict[str, float]:
     def save_checkpoint():
         group.export_optimizer_states(learner_optimizers)
         _write_group_file(root, cfg)
+        paths = []
         for i, s in enumerate(seeds):
             with rng.use(i):  # the checkpoint's random state is seed i's stream
-                s.checkpoint.save(
+                paths.append(s.checkpoint.save(
                     counters["frames"],
-                    config=OmegaConf.to_container(s.cfg),
+                    config=OmegaConf.to_container(s.cfg, resolve=True),
                     counters=dict(counters),
                     replay_buffer=s.rb,
                     logger={} if s.logger is None else s.logger.state_dict(),
                     episode=s.episode,
                     **s.agent.state_components(),
-                )
+                ))  # fmt: skip
+        return paths
 
     def save_after_failure():
         # mid-batch (a hung or failed collector) or a dropped batch (NaN): the episodes

@@ -94,8 +94,12 @@ def _train(cfg: DictConfig, run_dir: str) -> dict[str, float]:
 
     # Environments, agent, replay buffer; an in-process collector's env keeps its episode
     # for the checkpoints (a worker collector's workers keep theirs)
+    # A curriculum's envs carry its stage's setting, the first stage's from the start.
     record = cfg.collector.backend == "direct"
-    env, eval_env = make_env(cfg, device, record_episode=record), make_env(cfg, device)
+    curriculum, run_cfg = make_curriculum(cfg), cfg
+    if curriculum is not None:
+        run_cfg = stage_config(cfg, curriculum)
+    env, eval_env = make_env(run_cfg, device, record_episode=record), make_env(run_cfg, device)
     agent = make_agent(cfg, env, device)
     rb = make_replay_buffer(cfg, device)
     relabel, delayed = make_reward_relabelling(cfg, env)
@@ -122,16 +126,22 @@ def _train(cfg: DictConfig, run_dir: str) -> dict[str, float]:
         rng_at_load = GlobalRNGState().state_dict()
         episode.load_state_dict(checkpoint.read_optional("episode", loaded))
     logger = make_logger(cfg, run_dir, logger_state or None)
-    # A curriculum's envs carry its stage's setting; a resumed run continues its stage.
-    curriculum, run_cfg = make_curriculum(cfg), cfg
-    if curriculum is not None:
-        curriculum.load_state_dict({"stage": counters["curriculum_stage"]})
+    # A resumed run continues its curriculum's stage, in envs built for it.
+    if curriculum is not None and counters["curriculum_stage"]:
+        try:
+            curriculum.load_state_dict({"stage": counters["curriculum_stage"]})
+        except (TypeError, ValueError):
+            raise ValueError(
+                f"{loaded}: its counters hold curriculum_stage="
+                f"{counters['curriculum_stage']!r}, not a stage of curriculum.stages "
+                f"({len(curriculum.values)} stages, from 0); the checkpoint was edited, or "
+                "the run was saved with other stages: resume with those"
+            ) from None
         run_cfg = stage_config(cfg, curriculum)
-        if curriculum.stage:
-            env.close()
-            eval_env.close()
-            env = make_env(run_cfg, device, record_episode=record)
-            eval_env = make_env(run_cfg, device)
+        env.close()
+        eval_env.close()
+        env = make_env(run_cfg, device, record_episode=record)
+        eval_env = make_env(run_cfg, device)
     # A resumed run continues the episode of its checkpoint where it can (below); where it
     # cannot, a new seed keeps it from replaying old episodes.
     env.set_seed(cfg.env.seed + counters["frames"])
@@ -139,7 +149,7 @@ def _train(cfg: DictConfig, run_dir: str) -> dict[str, float]:
     def save_checkpoint():
         return checkpoint.save(
             counters["frames"],
-            config=OmegaConf.to_container(cfg),
+            config=OmegaConf.to_container(cfg, resolve=True),
             counters=counters,
             replay_buffer=rb,
             logger={} if logger is None else logger.state_dict(),

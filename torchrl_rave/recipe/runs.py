@@ -21,7 +21,12 @@ from pathlib import Path
 
 import numpy as np
 
-from torchrl_rave.recipe.checkpoint import DamagedCheckpoint, RunCheckpoint, newest_frame
+from torchrl_rave.recipe.checkpoint import (
+    DamagedCheckpoint,
+    RunCheckpoint,
+    check_run_directory,
+    newest_frame,
+)
 
 __all__ = [
     "Cell",
@@ -46,8 +51,13 @@ def read_scalar(run_dir: str | Path, metric: str) -> tuple[np.ndarray, np.ndarra
 
     A resumed run logs again the steps between its last checkpoint and where it stopped:
     the later value of a step wins, so a resumed run reads like an uninterrupted one.
+
+    A symbolic link under ``run_dir`` that leads out of it is refused
+    (:class:`~torchrl_rave.recipe.checkpoint.UnsafeRunDirectory`) before any file is
+    opened: a reader never reads, nor lets MLflow write, through one.
     """
     run_dir = Path(run_dir)
+    check_run_directory(run_dir)
     files = sorted(run_dir.glob(f"*/scalars/{metric}.csv"))
     if len(files) > 1:
         raise FileNotFoundError(
@@ -89,6 +99,7 @@ def relogged(run_dir: str | Path, metrics: str = "train/loss_*") -> tuple[int | 
     a machine): a run stopped by Ctrl-C or SIGTERM checkpoints where it stops, and its
     resume logs nothing twice."""
     first_twice, changed = None, False
+    check_run_directory(run_dir)
     for path in Path(run_dir).glob(f"*/scalars/{metrics}.csv"):
         seen: dict[int, float] = {}
         for step, value in _csv_rows(path):

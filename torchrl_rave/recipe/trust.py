@@ -11,7 +11,14 @@ the command line) or says it trusts the directory (``load_policy(run_dir, trust=
   convention; from the working directory first, where a run directory may ship one);
 - ``ray.address``, which joins that Ray cluster;
 - any string in ``env.kwargs``, which the env may open as a file (MuJoCo's ``xml_file``) or
-  resolve as a name.
+  resolve as a name;
+- ``logger.backend=wandb``, which logs in to W&B and writes to the project (and, on
+  resume, continues the W&B run) that the directory names;
+
+A saved config is data: an interpolation in it (``${...}``), which OmegaConf would resolve
+by reading this process's environment variables or calling a resolver, is refused
+whatever the trust (:func:`check_plain_data`); torchrl-rave saves configs resolved, so only
+an edited directory holds one.
 """
 
 from __future__ import annotations
@@ -19,13 +26,14 @@ from __future__ import annotations
 import argparse
 import socket
 
-from omegaconf import DictConfig
+from omegaconf import DictConfig, OmegaConf
 
 from torchrl_rave.recipe.config import ConfigError
 
 __all__ = [
     "UntrustedRunConfig",
     "add_trust_flag",
+    "check_plain_data",
     "check_trusted",
     "outside_references",
     "reach_ray_address",
@@ -40,20 +48,23 @@ class UntrustedRunConfig(ConfigError):
 def outside_references(cfg: DictConfig) -> dict[str, tuple[object, str]]:
     """The values of ``cfg`` that would make this process import, connect to or open
     something by name: ``{key: (value, what it would do)}``."""
+    # read as plain data: accessing a DictConfig's value would resolve an interpolation
+    data = OmegaConf.to_container(cfg, resolve=False) if OmegaConf.is_config(cfg) else cfg
     found: dict[str, tuple[object, str]] = {}
-    name = str(cfg.env.name)
+    env = data.get("env") or {}
+    name = str(env.get("name"))
     if ":" in name:
         found["env.name"] = (name, f"imports the module {name.split(':', 1)[0]!r}")
-    address = cfg.get("ray", {}).get("address")
+    address = (data.get("ray") or {}).get("address")
     if address is not None:
         found["ray.address"] = (address, "joins that Ray cluster")
-    for key, value in (cfg.env.get("kwargs") or {}).items():
+    for key, value in (env.get("kwargs") or {}).items():
         if isinstance(value, str):
             found[f"env.kwargs.{key}"] = (
                 value,
                 "is passed to the env, which may open it as a file",
             )
-    curriculum = cfg.get("curriculum") or {}
+    curriculum = data.get("curriculum") or {}
     if curriculum.get("kwarg") is not None:  # each stage's value becomes an env keyword
         stages = curriculum.get("stages") or []
         if any(isinstance(v, str) for v in stages):
@@ -61,7 +72,42 @@ def outside_references(cfg: DictConfig) -> dict[str, tuple[object, str]]:
                 list(stages),
                 "passes strings to the env as a keyword, which it may open as files",
             )
+    logger = data.get("logger") or {}
+    if logger.get("backend") == "wandb":
+        found["logger.backend"] = (
+            "wandb",
+            f"logs in to W&B and writes to its project {logger.get('project')!r} (a resumed "
+            "run continues the W&B run its checkpoint names)",
+        )
     return found
+
+
+def check_plain_data(data: dict, given: set[str], where: str) -> None:
+    """Raises :class:`UntrustedRunConfig` naming each string of a saved config ``data``
+    (nested dicts and lists) that OmegaConf would resolve as an interpolation, unless its
+    key (or a parent key) is in ``given`` (the caller passes the value itself)."""
+    problems = [
+        f"{where}: its saved config sets {key}={value!r}, an interpolation, which would be "
+        "resolved here (reading this process's environment variables or calling a "
+        "resolver); a saved config is data and torchrl-rave saves it resolved, so the run "
+        "directory was edited. Pass the key on the command line with the value to use"
+        for key, value in _interpolations(data)
+        if not {".".join(key.split(".")[:n]) for n in range(1, key.count(".") + 2)} & given
+    ]
+    if problems:
+        raise UntrustedRunConfig(problems)
+
+
+def _interpolations(data: object, prefix: str = ""):
+    """``(key, value)`` of every string of ``data`` that holds ``${``."""
+    if isinstance(data, dict):
+        for key, value in data.items():
+            yield from _interpolations(value, f"{prefix}{key}.")
+    elif isinstance(data, list):
+        for index, value in enumerate(data):
+            yield from _interpolations(value, f"{prefix}{index}.")
+    elif isinstance(data, str) and "${" in data:
+        yield prefix[:-1], data
 
 
 def check_trusted(saved: DictConfig, given: set[str], where: str, how: str) -> None:
