@@ -583,8 +583,9 @@ class TestBadInput:
             ({"alpha": -0.5}, "alpha"),
             ({"gamma": 1.5}, "gamma"),
             ({"alpha_error_scale": 0.0}, "alpha_error_scale"),
-            ({"variance_eps": -1e-8}, "variance_eps must be a finite number >= 0"),
-            ({"variance_eps": math.nan}, "variance_eps must be a finite number >= 0"),
+            ({"variance_eps": -1e-8}, "variance_eps must be a finite number > 0"),
+            ({"variance_eps": 0.0}, "variance_eps must be a finite number > 0"),
+            ({"variance_eps": math.nan}, "variance_eps must be a finite number > 0"),
         ],
     )
     def test_bad_hyperparameters(self, kw, match):

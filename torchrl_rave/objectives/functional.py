@@ -278,7 +278,8 @@ def expansion_target(
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Combines per-horizon moments into one target.
 
-    - ``mix="inverse_variance"``: ``sum_H w_H CLB_H / sum_H w_H`` with ``w_H = 1/V_H``:
+    - ``mix="inverse_variance"``: ``sum_H w_H CLB_H / sum_H w_H`` with
+      ``w_H = 1 / (V_H + eps)``:
       STEVE (eq. 6) with ``alpha = 0``, RAVE (eq. 11) otherwise.
     - ``mix="fixed"``: ``CLB_H`` at one horizon (``horizon``, default the last): MVE
       (eq. 5) with ``alpha = 0``.

@@ -14,7 +14,7 @@ from tensordict.utils import NestedKey
 from torchrl.objectives.value import ValueEstimatorBase
 
 from torchrl_rave._checks import (
-    NON_NEGATIVE,
+    POSITIVE,
     UNIT_INTERVAL,
     check_not_empty,
     check_positive_int,
@@ -147,7 +147,8 @@ class ValueExpansionEstimator(ValueEstimatorBase):
             (typically target parameters). Defaults to the module's own.
         value_params (TensorDictBase, optional): critic parameters, optionally stacked
             with a leading ensemble dimension ``K``. Defaults to the module's own.
-        variance_eps (float): ``eps`` in ``w_H = 1 / (V_H + eps)``.
+        variance_eps (float): ``eps`` in ``w_H = 1 / (V_H + eps)``, > 0: on a row that
+            terminates, every candidate's variance is 0, and ``eps = 0`` would divide by 0.
         check_inputs (bool): validate shapes and reject NaN/inf in the batch (one
             device sync per call). Defaults to ``True``.
         fast_calls (bool): evaluate the actor and critics through
@@ -225,7 +226,7 @@ class ValueExpansionEstimator(ValueEstimatorBase):
         self.rollout = rollout
         self.mix = mix
         self.alpha_mode = alpha_mode
-        self.variance_eps = float(NON_NEGATIVE.check("variance_eps", variance_eps))
+        self.variance_eps = float(POSITIVE.check("variance_eps", variance_eps))
         self.check_inputs = check_inputs
         self.register_buffer("gamma", torch.tensor(float(gamma), device=self._device))
         self.register_buffer("alpha", torch.tensor(float(alpha), device=self._device))
