@@ -87,3 +87,15 @@ def test_the_command_writes_a_run_that_trains_on(tmp_path):
     # training goes on from it
     results = rave_mujoco.train(make_cfg(*args, f"resume={out}", "collector.total_frames=300"), "x")
     assert results["frames"] == 300 and results["updates"] > 0
+
+
+def test_bad_ranges_and_slices_are_named(tmp_path, capsys):
+    """The probes: an infinite range wrote a NaN policy and exited 0; ``--target a:b``
+    ended in an ``int()`` traceback."""
+    with pytest.raises(ValueError, match="low=-inf: expected a finite number.*high=inf"):
+        distill.main([str(tmp_path / "none"), "--out", str(tmp_path / "bad"), "--target", "0:1",
+                      "--low=-inf", "--high=inf"])  # fmt: skip
+    with pytest.raises(SystemExit):
+        distill.main([str(tmp_path / "none"), "--out", str(tmp_path / "bad"), "--target", "a:b"])
+    assert "'a:b': expected START:STOP" in capsys.readouterr().err
+    assert not (tmp_path / "bad").exists()

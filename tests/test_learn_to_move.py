@@ -258,3 +258,31 @@ def test_the_time_limit_pays_round_one_and_asks_round_two_for_footsteps():
         _, reward, _, truncated, info = hard.step(np.zeros(22))
     # round 2 succeeds only after more than 5 footsteps: nothing beyond the alive bonus
     assert truncated and not info["success"] and reward == pytest.approx(0.1)
+
+
+def test_distillation_noises_the_range_the_task_can_produce_at_the_stage_speed(tmp_path):
+    """On the planar task at difficulty 0 the target field is one constant: in the pairs
+    its range is about 0, so noise over that range is none and the "distillation" plain
+    behaviour cloning (refused, named). The env's own target part is noised over every
+    value the task can produce at the stage the run reached (2.5 m/s here, the
+    curriculum's first stage), and the pairs are collected at that speed."""
+    import rave_mujoco
+    from test_recipe import TINY, make_cfg
+
+    from torchrl_rave.recipe.distill import distill_run
+
+    assert L.LearnToMoveEnv("2D", difficulty=0, constant_speed=2.5).target_range == (-2.5, 2.5)
+    assert L.LearnToMoveEnv("2D", difficulty=1).target_range == (-1.8, 1.8)
+    run = tmp_path / "run"
+    cfg = make_cfg(
+        *TINY, "algorithm=ddpg", "env.name=LearnToMove2D-v0", "collector.total_frames=100",
+        "env.kwargs={difficulty:0,time_limit:20}", "eval.interval=100", "eval.episodes=1",
+        "curriculum.kwarg=constant_speed", "curriculum.stages=[2.5,1.4]",
+        "curriculum.thresholds=[1e9]",
+    )  # fmt: skip
+    rave_mujoco.train(cfg, str(run))
+    result = distill_run(run, tmp_path / "out", frames=40, steps=5)
+    assert result["collected_with"] == {"difficulty": 0, "time_limit": 20, "constant_speed": 2.5}
+    assert result["noise"] == [-2.5, 2.5] and result["target"] == [0, 242]
+    with pytest.raises(ValueError, match="take one value in the 40 pairs"):
+        distill_run(run, tmp_path / "degenerate", slice(0, 242), frames=40, steps=5)

@@ -389,6 +389,17 @@ class LearnToMoveEnv(gym.Env):
         )
         self._manager = None
 
+    @property
+    def target_range(self) -> tuple[float, float]:
+        """The range every number of the target field (:attr:`target_observation`) can
+        take at this env's settings: each component of a target velocity in the body
+        frame lies in ``[-v, v]``, ``v`` the field's largest speed (``constant_speed`` at
+        difficulty 0, the high end of ``speed_range`` otherwise), whatever the heading.
+        Noisy-target distillation draws the field uniformly from it
+        (:func:`~torchrl_rave.recipe.distill.distill_run`)."""
+        v = float(self.field.constant[0]) if self.difficulty == 0 else self.field.speed_range[1]
+        return (-v, v)
+
     def set_effort_weight(self, weight: float) -> None:
         """The muscle-effort term's weight from now on (a delayed effort penalty)."""
         if not (np.isfinite(weight) and weight >= 0):

@@ -12,6 +12,7 @@ checkpoint is the source's with the actor (and its target copy) replaced, so tha
 from __future__ import annotations
 
 import json
+import math
 from pathlib import Path
 
 import torch
@@ -22,6 +23,7 @@ from torchrl.envs.utils import ExplorationType, set_exploration_type
 
 from torchrl_rave.recipe.agent import make_actor, make_agent, make_env, make_replay_buffer
 from torchrl_rave.recipe.checkpoint import RunCheckpoint, missing_checkpoint, saved_config
+from torchrl_rave.recipe.curriculum import make_curriculum, stage_config
 from torchrl_rave.recipe.episode import EpisodeCheckpoint
 from torchrl_rave.recipe.schema import defaults
 
@@ -116,17 +118,29 @@ def distill_run(
     """Collects ``frames`` pairs from ``run_dir``'s latest policy, fits a freshly built
     actor of the same config on them (:func:`distill_actor`; ``target`` is the slice of
     the observation to noise, by default the env's ``target_observation``; its range is
-    ``[low, high]``, or each target entry's range in the pairs), and writes ``out_dir``:
+    ``[low, high]``, by default the env's ``target_range``, or for a slice of the caller's
+    each entry's range in the pairs), and writes ``out_dir``:
     a run directory whose checkpoint is ``run_dir``'s with the actor, its target copy and
     the exploration policy replaced by the fitted one. Nothing of ``run_dir`` changes.
-    ``trust`` as for :func:`~torchrl_rave.recipe.agent.load_agent`. Returns, and writes
-    to ``out_dir/distill.json``, the source, the number of pairs, the target slice and the
-    fit's first and last losses."""
+    ``trust`` as for :func:`~torchrl_rave.recipe.agent.load_agent`.
+
+    The pairs are collected in the env of the curriculum stage the run had reached (a
+    ``curriculum.kwarg`` run's stage speed), recorded under ``collected_with``. With the
+    env's own target part, the noise covers every value the task can produce there (the
+    env's ``target_range``: for ``LearnToMove-v0``, ``[-v, v]`` with ``v`` its largest
+    target speed), not only those seen in the pairs, which on a task with a constant
+    target are one value. Returns, and writes to ``out_dir/distill.json``, the source, the
+    number of pairs, the env keywords they were collected with, the target slice, the
+    noise's range and the fit's first and last losses."""
     from torchrl_rave.recipe.trust import check_trusted
 
     problems = [f"{name}={value}: expected an integer >= 1"
                 for name, value in (("frames", frames), ("steps", steps)) if value < 1]  # fmt: skip
-    if low is not None and high is not None and not low <= high:
+    infinite = [f"{name}={value}: expected a finite number (the noise is uniform over "
+                "[low, high])" for name, value in (("low", low), ("high", high))
+                if value is not None and not math.isfinite(value)]  # fmt: skip
+    problems += infinite
+    if not infinite and low is not None and high is not None and not low <= high:
         problems.append(f"low={low}, high={high}: the target range must have low <= high")
     if problems:  # before the run is read or any pair collected
         raise ValueError("; ".join(problems))
@@ -144,7 +158,13 @@ def distill_run(
         )
     if "ray" in cfg:
         cfg.ray.address = None
-    env = make_env(cfg, torch.device("cpu"))
+    # the pairs come from the env of the curriculum stage the run had reached
+    counters_saved = source.read("counters", path)
+    curriculum, env_cfg = make_curriculum(cfg), cfg
+    if curriculum is not None:
+        curriculum.load_state_dict({"stage": counters_saved.get("curriculum_stage", 0)})
+        env_cfg = stage_config(cfg, curriculum)
+    env = make_env(env_cfg, torch.device("cpu"))
     agent = make_agent(cfg, env)
     rb = make_replay_buffer(cfg, torch.device("cpu"))
     counters: dict = {}
@@ -157,9 +177,11 @@ def distill_run(
         logger=logger,
         **agent.state_components(),
     )
+    task_range = None
     if target is None:  # the env's own target part (LearnToMove-v0's target field)
         try:
             target = env.base_env._env.get_wrapper_attr("target_observation")
+            task_range = env.base_env._env.get_wrapper_attr("target_range")
         except AttributeError:
             env.close()
             raise ValueError(
@@ -167,8 +189,21 @@ def distill_run(
             ) from None
     observations, actions = collect_pairs(env, agent.actor, frames, seed)
     picked = observations[:, target]
-    low_t = picked.min(0).values if low is None else low
-    high_t = picked.max(0).values if high is None else high
+    if task_range is not None:  # every value the task can produce at this stage
+        low_t = task_range[0] if low is None else low
+        high_t = task_range[1] if high is None else high
+    else:  # a slice of the caller's: the range seen in the pairs
+        low_t = picked.min(0).values if low is None else low
+        high_t = picked.max(0).values if high is None else high
+        spread = float(torch.as_tensor(high_t - low_t).max())
+        if spread < 1e-6:
+            env.close()
+            raise ValueError(
+                f"the target entries {target.start}:{target.stop} take one value in the "
+                f"{frames} pairs (range {spread:.2g}): noise over it would be none, and the "
+                "fit plain behaviour cloning; pass the range the task can produce "
+                "(low=, high=; --low/--high)"
+            )
     torch.manual_seed(seed)
     student = make_actor(cfg, env, agent.algorithm)[0]
     generator = torch.Generator().manual_seed(seed)
@@ -192,8 +227,13 @@ def distill_run(
         episode=EpisodeCheckpoint(),  # none kept: the distilled policy starts new episodes
         **agent.state_components(),
     )
+    noise = [torch.as_tensor(v, dtype=torch.float64) for v in (low_t, high_t)]
+    kwargs = env_cfg.env.kwargs
     result = {"source": str(run_dir), "frames": int(counters["frames"]), "pairs": len(observations),
-              "target": [target.start, target.stop], "steps": steps, "seed": seed,
+              "collected_with": None if kwargs is None else OmegaConf.to_container(kwargs),
+              "target": [target.start, target.stop],
+              "noise": [float(noise[0].min()), float(noise[1].max())],
+              "steps": steps, "seed": seed,
               "first_loss": losses[0], "last_loss": losses[-1]}  # fmt: skip
     (out / "distill.json").write_text(json.dumps(result, indent=1) + "\n")
     return result
