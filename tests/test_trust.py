@@ -260,6 +260,48 @@ class TestReaders:
         load_policy(run)
 
 
+class TestLoadPolicy:
+    """What a loaded policy rests on is checked before it is built or returned."""
+
+    def test_an_edited_width_is_refused_before_anything_is_allocated(self, run, monkeypatch):
+        """The probe's 200,000-unit actor asked for 160 GB; the check comes first."""
+        edit_config(run, **{"network.actor_cells": 200_000})
+        built = []
+        monkeypatch.setattr("torchrl_rave.recipe.agent.make_agent",
+                            lambda *a, **k: built.append(1))  # fmt: skip
+        with pytest.raises(DamagedCheckpoint, match="network.actor_cells=200000 is the size "
+                           "of no tensor of the checkpoint"):  # fmt: skip
+            load_policy(run)
+        assert built == []
+
+    def test_nan_weights_are_named(self, run):
+        for checkpoint in RunCheckpoint(run).checkpoints():
+            state = component(checkpoint, "policy") / "state"
+            weight = state / "tensor_00000000.memmap"  # the first layer's weight
+            weight.write_bytes(b"\xff" * weight.stat().st_size)  # float32 NaN
+            rechecksum(checkpoint)
+        with pytest.raises(DamagedCheckpoint, match="checkpoint-0+300: .*weight holds NaN or inf"):
+            load_policy(run)
+
+    def test_a_saved_config_without_its_env_is_refused(self, run):
+        for checkpoint in RunCheckpoint(run).checkpoints():
+            path = component(checkpoint, "config") / "value.json"
+            cfg = json.loads(path.read_text())
+            del cfg["env"]
+            path.write_text(json.dumps(cfg))
+            rechecksum(checkpoint)
+        with pytest.raises(DamagedCheckpoint, match="saved config lacks \\['env'\\]"):
+            load_policy(run)
+
+    def test_a_malformed_saved_config_names_its_checkpoint(self, run):
+        for checkpoint in RunCheckpoint(run).checkpoints():
+            (component(checkpoint, "config") / "value.json").write_text("{not json")
+            rechecksum(checkpoint)
+        with pytest.raises(DamagedCheckpoint, match="checkpoint-0+300: its 'config' component "
+                           "is unreadable"):  # fmt: skip
+            load_policy(run)
+
+
 class TestSavedConfig:
     def test_a_saved_interpolation_is_never_resolved(self, run, tmp_path, monkeypatch):
         """The probe's attack: a saved ``logger.exp_name: ${oc.env:TOKEN}`` wrote the
@@ -357,3 +399,12 @@ def test_a_pickle_is_what_the_probe_used(tmp_path):
     with pytest.warns(FutureWarning):
         TensorDict.load_memmap(tmp_path / "td")
     assert marker.exists()
+
+
+def test_a_garbage_mlflow_store_is_named(run):
+    """The probe's garbage ``mlflow.db`` ended in an SQLAlchemy traceback."""
+    shutil.rmtree(run / "ddpg")
+    (run / "mlflow.db").write_bytes(b"garbage" * 100)
+    with pytest.raises(ValueError, match="mlflow.db is not an SQLite database"):
+        read_scalar(run, "eval/return")
+    assert (run / "mlflow.db").read_bytes() == b"garbage" * 100

@@ -173,6 +173,7 @@ def load_agent(
     ``env.kwargs``) raises :class:`~torchrl_rave.recipe.trust.UntrustedRunConfig` unless
     ``trust=True`` says that the run directory is trusted (:mod:`torchrl_rave.recipe.trust`)."""
     from torchrl_rave.recipe.checkpoint import (
+        DamagedCheckpoint,
         RunCheckpoint,
         check_run_directory,
         missing_checkpoint,
@@ -185,13 +186,22 @@ def load_agent(
     if path is None:
         raise missing_checkpoint(run_dir)
     data = checkpoint.read("config", path)
-    check_plain_data(data, set(), f"load_agent({str(run_dir)!r})")
+    where = f"load_agent({str(run_dir)!r})"
+    check_plain_data(data, set(), where)
+    missing = [k for k in ("algorithm", "env", "network")
+               if not isinstance(data, dict) or k not in data]  # fmt: skip
+    if missing or data["algorithm"] not in ALGORITHMS or "name" not in (data["env"] or {}):
+        raise DamagedCheckpoint(
+            f"{path}: its saved config lacks {missing or 'a known algorithm or env.name'}, "
+            "which decide what is built: it was not written by torchrl-rave, or was edited"
+        )
     cfg = OmegaConf.create(data)
     if "ray" in cfg:
         cfg.ray.address = None  # loading a policy connects nowhere
     if not trust:
         how = "Pass trust=True if you trust the run directory."
-        check_trusted(cfg, set(), f"load_agent({str(run_dir)!r})", how)
+        check_trusted(cfg, set(), where, how)
+    _check_saved_sizes(cfg, checkpoint, path)
     env = make_env(cfg, torch.device(device))
     try:
         agent = make_agent(cfg, env, device)
@@ -201,7 +211,66 @@ def load_agent(
     if agent.world_model_trainer is not None:
         del parts["world_model_trainer"]
     checkpoint.load(path=path, restore_rng=False, **parts)
+    for name, module in parts.items():
+        for key, value in module.state_dict().items():
+            if torch.is_tensor(value) and value.is_floating_point() and not value.isfinite().all():
+                raise DamagedCheckpoint(
+                    f"{path}: {name}'s {key} holds NaN or inf; the run diverged before this "
+                    "checkpoint, or it was edited: load an earlier one"
+                )
     return cfg, agent
+
+
+def _check_saved_sizes(cfg: DictConfig, checkpoint, path: Path) -> None:
+    """Before anything is allocated: every width and ensemble size a saved config asks
+    for is a size of some tensor the checkpoint holds, and every depth at most their
+    number, so an edited config cannot make :func:`load_agent` allocate networks far
+    larger than the run trained (the sizes then fail to load anyway, after the memory
+    was taken). Raises :class:`DamagedCheckpoint` naming the key."""
+    from torchrl.checkpoint import Checkpoint
+
+    from torchrl_rave.recipe.checkpoint import DamagedCheckpoint
+
+    skip = ("config", "counters", "logger", "episode", "rng", "replay_buffer",
+            "world_model_trainer")  # fmt: skip
+    names = [n for n in Checkpoint.manifest(path)["components"]
+             if n not in skip and not n.startswith("optim")]  # fmt: skip
+    sizes, count = set(), 0
+    for name in names:
+        state = checkpoint.read(name, path)
+        stack = [state]
+        while stack:
+            item = stack.pop()
+            if torch.is_tensor(item):
+                sizes.update(item.shape)
+                count += 1
+            elif isinstance(item, dict):
+                stack += list(item.values())
+            elif isinstance(item, (list, tuple)):
+                stack += list(item)
+    algorithm = ALGORITHMS[cfg.algorithm]
+    widths = {"network.actor_cells": cfg.network.actor_cells,
+              "network.critic_cells": cfg.network.critic_cells,
+              "network.num_critics": cfg.network.get("num_critics")}  # fmt: skip
+    depths = {"network.num_layers": cfg.network.num_layers}
+    if algorithm.model_based:
+        widths["world_model.num_models"] = cfg.world_model.num_models
+        for key, value in world_model_sizes(cfg).items():
+            (depths if key.endswith("_layers") else widths)[f"world_model.{key}"] = value
+    problems = [
+        f"{key}={value!r} is the size of no tensor of the checkpoint"
+        for key, value in widths.items()
+        if value is not None and not (isinstance(value, int) and (value <= 1 or value in sizes))
+    ] + [
+        f"{key}={value!r} is more layers than the checkpoint has tensors ({count})"
+        for key, value in depths.items()
+        if not (isinstance(value, int) and value <= count)
+    ]
+    if problems:
+        raise DamagedCheckpoint(
+            f"{path}: its saved config does not match its tensors: {'; '.join(problems)}; "
+            "the config was edited (building those networks could take any amount of memory)"
+        )
 
 
 def load_policy(

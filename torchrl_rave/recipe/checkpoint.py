@@ -492,7 +492,12 @@ class RunCheckpoint:
         if record is None:
             raise KeyError(f"checkpoint {path} has no component {name!r}")
         target = {} if record["adapter"] == "torchrl.json" else _StateReader()
-        Checkpoint(**{name: target}).load(path, components=[name])
+        try:
+            Checkpoint(**{name: target}).load(path, components=[name])
+        except Exception as err:  # noqa: BLE001 (torchrl's errors name no path)
+            raise DamagedCheckpoint(
+                f"{path}: its {name!r} component is unreadable ({type(err).__name__}: {err})"
+            ) from None
         return target if isinstance(target, dict) else target.state
 
     def read_optional(self, name: str, path: Path):

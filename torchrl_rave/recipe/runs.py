@@ -154,12 +154,23 @@ def _mlflow_rows(run_dir: Path, metric: str) -> list[tuple[int, float]]:
             f"{run_dir} was logged with logger.backend=mlflow: reading it needs the 'mlflow' "
             "package (pip install 'torchrl-rave[logging]')"
         ) from err
-    client = MlflowClient(tracking_uri=f"sqlite:///{(run_dir / 'mlflow.db').resolve()}")
-    ids = [e.experiment_id for e in client.search_experiments()]
-    rows = []
-    for run in client.search_runs(ids, order_by=["attributes.start_time ASC"]):
-        history = client.get_metric_history(run.info.run_id, metric)
-        rows += [(int(m.step), float(m.value)) for m in sorted(history, key=lambda m: m.timestamp)]
+    store = run_dir / "mlflow.db"
+    with open(store, "rb") as f:  # MLflow would try to upgrade any other file in place
+        if f.read(16) != b"SQLite format 3\x00":
+            raise ValueError(f"{store} is not an SQLite database, as an MLflow store is")
+    try:
+        client = MlflowClient(tracking_uri=f"sqlite:///{store.resolve()}")
+        ids = [e.experiment_id for e in client.search_experiments()]
+        rows = []
+        for run in client.search_runs(ids, order_by=["attributes.start_time ASC"]):
+            history = client.get_metric_history(run.info.run_id, metric)
+            rows += [(int(m.step), float(m.value))
+                     for m in sorted(history, key=lambda m: m.timestamp)]  # fmt: skip
+    except Exception as err:  # noqa: BLE001 (SQLAlchemy's and MLflow's errors name no file)
+        first = str(err).strip().splitlines()[0] if str(err).strip() else ""
+        raise ValueError(
+            f"{store} is not a readable MLflow store ({type(err).__name__}: {first})"
+        ) from None
     if not rows:
         raise FileNotFoundError(f"{run_dir}: no {metric!r} in its MLflow store")
     return rows
