@@ -408,3 +408,21 @@ def test_a_garbage_mlflow_store_is_named(run):
     with pytest.raises(ValueError, match="mlflow.db is not an SQLite database"):
         read_scalar(run, "eval/return")
     assert (run / "mlflow.db").read_bytes() == b"garbage" * 100
+
+
+def test_a_ray_address_where_something_else_listens_fails_fast_by_name():
+    """The probe's resume hung past ``collector.timeout_s`` on a port where another
+    service listened; a listener that accepts and says nothing stands in for it."""
+    import socket
+    import threading
+
+    server = socket.create_server(("127.0.0.1", 0))
+    port = server.getsockname()[1]
+    accepted = []  # held open: a listener that accepts and never answers
+    threading.Thread(target=lambda: accepted.append(server.accept()), daemon=True).start()
+    started = time.monotonic()
+    with pytest.raises(ConnectionError, match=f"something listens at ray.address='127.0.0.1:"
+                       f"{port}' but does not answer as a Ray cluster"):  # fmt: skip
+        reach_ray_address(f"127.0.0.1:{port}", timeout_s=2)
+    assert time.monotonic() - started < 10
+    server.close()

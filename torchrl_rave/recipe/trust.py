@@ -127,11 +127,16 @@ def check_trusted(saved: DictConfig, given: set[str], where: str, how: str) -> N
         raise UntrustedRunConfig(problems)
 
 
+HTTP2_PREFACE = b"PRI * HTTP/2.0\r\n\r\nSM\r\n\r\n"
+
+
 def reach_ray_address(address: str, timeout_s: float) -> None:
     """Raises ``ConnectionError`` naming ``address`` when no Ray cluster answers there
-    within ``timeout_s`` (a TCP connection to its port). ``ray.init`` itself retries an
-    unreachable address for minutes and ignores SIGTERM meanwhile. ``auto`` (a cluster on
-    this machine, found by Ray) is not checked."""
+    within ``timeout_s``: nothing accepts a TCP connection on its port, or what does is
+    not a gRPC server (Ray's GCS is one; it answers HTTP/2's preface with a SETTINGS
+    frame). ``ray.init`` itself retries an unreachable address for minutes, hangs on a
+    port where something else listens, and ignores SIGTERM meanwhile. ``auto`` (a
+    cluster on this machine, found by Ray) is not checked."""
     if address == "auto":
         return
     hostport = address.split("://", 1)[-1].rstrip("/")
@@ -139,12 +144,31 @@ def reach_ray_address(address: str, timeout_s: float) -> None:
     if not host or not port.isdigit():
         raise ConnectionError(f"ray.address={address!r} is not of the form host:port or auto")
     try:
-        socket.create_connection((host.strip("[]"), int(port)), timeout=timeout_s).close()
+        conn = socket.create_connection((host.strip("[]"), int(port)), timeout=timeout_s)
     except OSError as err:
         raise ConnectionError(
             f"no Ray cluster answers at ray.address={address!r} ({err.strerror or err}) "
             f"within {timeout_s:g} s; check the address, or start the cluster"
         ) from None
+    header = b""
+    with conn:
+        # Ray's GCS is a gRPC server: to HTTP/2's client preface it answers with a
+        # SETTINGS frame (a 9-byte header whose 4th byte, the frame type, is 4)
+        try:
+            conn.sendall(HTTP2_PREFACE + b"\x00\x00\x00\x04\x00\x00\x00\x00\x00")
+            while len(header) < 9:
+                chunk = conn.recv(9 - len(header))
+                if not chunk:
+                    break
+                header += chunk
+        except OSError:  # silent past the timeout, or it hung up: not a Ray cluster
+            pass
+    if len(header) < 9 or header[3] != 4:
+        raise ConnectionError(
+            f"something listens at ray.address={address!r} but does not answer as a Ray "
+            "cluster does (a gRPC server); check the address (the head node's GCS port, "
+            "6379 by default)"
+        )
 
 
 def add_trust_flag(parser: argparse.ArgumentParser) -> None:
