@@ -260,8 +260,31 @@ def _int64_action(td):
     return td
 
 
+def _wide_reward(td):
+    td = td.clone()
+    td["next", "reward"] = td["next", "reward"].expand(*td.batch_size, 2).clone()
+    return td
+
+
+def _flat_reward(td):
+    td = td.clone()
+    td["next", "reward"] = td["next", "reward"].squeeze(-1)
+    return td
+
+
+def _float_terminated(td):
+    td = td.clone()
+    td["next", "terminated"] = td["next", "terminated"].float()
+    return td
+
+
 _BAD_BATCHES = [
     ("td0", _without_action, "no entry 'action'"),
+    # the probes: these ended in TorchRL's errors, which name neither entry nor shape
+    ("td0", _wide_reward, "entry \('next', 'reward'\) has shape \(6, 2\), expected \(6, 1\)"),
+    ("td0", _flat_reward, "entry \('next', 'reward'\) has shape \(6,\), expected \(6, 1\)"),
+    ("td0", _float_terminated, "entry \('next', 'terminated'\) is torch.float32, expected "
+     "torch.bool"),
     # issue 39, defect 9: integer rewards and actions were cast silently
     ("td0", _int64_reward, "entry \\('next', 'reward'\\) is torch.int64, expected a floating"),
     ("rave", _int64_reward, "entry \\('next', 'reward'\\) is torch.int64, expected a floating"),
@@ -295,7 +318,8 @@ _BAD_BATCHES = [
         # the actor loss reads no action and no reward
         if not (
             method == "loss_actor"
-            and case[1] in (_without_action, _inf_reward, _int64_reward, _int64_action)
+            and case[1] in (_without_action, _inf_reward, _int64_reward, _int64_action,
+                            _wide_reward, _flat_reward, _float_terminated)
         )
     ],
 )
@@ -363,3 +387,15 @@ def test_an_untrained_world_model_is_named_once():
         warnings.simplefilter("error")
         loss(batch(B=6))  # once
         make_loss(3, estimator="rave")(batch(B=6))  # a fitted model: no warning
+
+
+@pytest.mark.parametrize("estimator", ["td0", "rave"])
+def test_inputs_too_large_for_float32_are_named_before_a_step(estimator):
+    """The probe: rewards of 1e20 passed every check, gave inf losses, and one Adam step
+    later every parameter was NaN, silently."""
+    loss = make_loss(4, estimator=None if estimator == "td0" else "rave")
+    data = batch()
+    data["next", "reward"] = torch.full_like(data["next", "reward"], 1e20)
+    with pytest.raises(ValueError, match="not finite although the batch holds no NaN or inf.*"
+                       "entry \\('next', 'reward'\\) reaches 1e\\+20"):  # fmt: skip
+        loss(data)

@@ -468,6 +468,24 @@ class TestBadInput:
         with pytest.raises(ValueError, match="inputs hold NaN or infinite"):
             self.model.obs_norm.update(torch.full((2, self.model.observation_dim), math.inf))
 
+    def test_integer_rewards_and_a_model_step_without_action_or_in_float64(self):
+        """The probes: int64 rewards were taken silently; a model step without an action,
+        or in float64, ended in unrelated errors."""
+        bad = self.data.clone()
+        bad["next", "reward"] = bad["next", "reward"].round().long()
+        with pytest.raises(ValueError, match="'reward'\\) is torch.int64, expected a floating"):
+            self.loss(bad)
+        with pytest.raises(ValueError, match="no entry 'action'"):
+            self.model(self.data.exclude("action"))
+        with pytest.raises(ValueError, match="'observation' is torch.float64 but the model"):
+            self.model(self.data.to(torch.float64))
+
+    def test_inputs_too_large_for_float32_are_named(self):
+        big = self.data.clone()
+        big["observation"] = big["observation"] * 1e20
+        with pytest.raises(ValueError, match="WorldModelEnsembleLoss: the losses .* not finite"):
+            self.loss(big)
+
     def test_empty_batch(self):
         # failed inside random_ when drawing the bootstrap indices
         with pytest.raises(ValueError, match="WorldModelEnsembleLoss got an empty batch"):

@@ -111,6 +111,59 @@ def check_non_negative(name: str, value) -> float:
     return float(NON_NEGATIVE.check(name, value))
 
 
+def check_transition_layout(
+    tensordict: TensorDictBase, reward_key: NestedKey, flag_keys: list[NestedKey]
+) -> None:
+    """TorchRL's layout of a batch of transitions ``[*B]``: one floating-point reward per
+    transition, ``[*B, 1]``, and boolean ``done`` / ``terminated`` flags ``[*B, 1]`` (a
+    flag that is absent is not asked for). Raises ``ValueError`` naming the entry, the
+    shape or dtype it has and the one expected; TorchRL's own estimators fail on these
+    further in, with messages that name neither."""
+    expected = (*tensordict.batch_size, 1)
+    reward = tensordict.get(reward_key, None)
+    if reward is not None and tuple(reward.shape) != expected:
+        raise ValueError(
+            f"entry {reward_key!r} has shape {tuple(reward.shape)}, expected {expected}: one "
+            f"reward per transition of the batch {tuple(tensordict.batch_size)}, with the "
+            "trailing dimension of 1 that TorchRL's envs write"
+        )
+    for key in flag_keys:
+        flag = tensordict.get(key, None)
+        if flag is None:
+            continue
+        if flag.dtype != torch.bool:
+            raise ValueError(
+                f"entry {key!r} is {flag.dtype}, expected torch.bool, as TorchRL's envs write "
+                "done and terminated flags: cast it (flag.bool())"
+            )
+        if tuple(flag.shape) != expected:
+            raise ValueError(f"entry {key!r} has shape {tuple(flag.shape)}, expected {expected}")
+
+
+def check_finite_losses(who: str, losses: dict, tensordict: TensorDictBase, keys) -> None:
+    """After a loss whose inputs were checked finite: a loss that is not finite means
+    values too large for the arithmetic (e.g. rewards of 1e20 overflow float32 in the
+    squared error, and one optimiser step later every parameter is NaN). Raises
+    ``ValueError`` naming the losses and the input of largest magnitude among ``keys``."""
+    if torch.compiler.is_compiling():
+        return
+    bad = {k: float(v.detach()) for k, v in losses.items() if not bool(torch.isfinite(v).all())}
+    if not bad:
+        return
+    largest = max(
+        ((k, float(tensordict.get(k).detach().abs().max())) for k in keys
+         if k in tensordict.keys(True) and tensordict.get(k).is_floating_point()
+         and tensordict.get(k).numel()),
+        key=lambda kv: kv[1], default=(None, float("nan")),
+    )  # fmt: skip
+    raise ValueError(
+        f"{who}: the losses {bad} are not finite although the batch holds no NaN or inf: "
+        f"its values are too large for {next(iter(losses.values())).dtype} arithmetic "
+        f"(entry {largest[0]!r} reaches {largest[1]:.3g}); scale the rewards or "
+        "observations (e.g. with torchrl's RewardScaling or ObservationNorm)"
+    )
+
+
 def check_not_empty(tensordict: TensorDictBase, who: str) -> None:
     """Refuses a batch without transitions (its losses would be NaN or fail deep inside)."""
     if 0 in tensordict.batch_size:  # (TensorDict.numel() reports 1 for these)

@@ -440,8 +440,10 @@ class WorldModelEnsemble(TensorDictModuleBase):
         """
         mode = interaction_type() or self.default_interaction_type
         sample = mode == InteractionType.RANDOM
-        obs = tensordict.get(self.observation_key)
-        action = tensordict.get(self.action_key)
+        read = functools.partial(get_checked, tensordict, dtype=self.dtype, floating=True,
+                                 check_finite=False)  # fmt: skip
+        obs = read(self.observation_key, self.observation_dim)
+        action = read(self.action_key, self.action_dim)
         next_obs = self.step(obs, action, sample=sample)
         N = self.num_models
         obs_n = obs.expand(N, *obs.shape)

@@ -13,8 +13,10 @@ from torchrl.objectives.utils import distance_loss
 from torchrl.objectives.value import TD0Estimator, TD1Estimator, TDLambdaEstimator
 
 from torchrl_rave._checks import (
+    check_finite_losses,
     check_not_empty,
     check_positive_int,
+    check_transition_layout,
     first_param_dtype,
     get_checked,
 )
@@ -240,6 +242,7 @@ class EnsembleDDPGLoss(LossModule):
             self.value_estimator.check_batch(tensordict)
         elif self.check_inputs:
             self._check_widths(tensordict, keys)
+            check_transition_layout(tensordict, ("next", self.tensor_keys.reward), list(flags))
 
     def _check_widths(self, tensordict: TensorDictBase, keys) -> None:
         """The actor's inputs among ``keys`` (now and ``next``) and the critics' add up
@@ -338,6 +341,11 @@ class EnsembleDDPGLoss(LossModule):
         self._check_batch(tensordict, [*self._value_keys(), *self.actor_network.in_keys])
         loss_value, metadata = self._loss_value(tensordict)
         loss_actor, metadata_actor = self._loss_actor(tensordict)
+        if self.check_inputs:
+            check_finite_losses(
+                type(self).__name__, {"loss_value": loss_value, "loss_actor": loss_actor},
+                tensordict, [*self._value_keys(), *self.actor_network.in_keys],
+            )  # fmt: skip
         tensordict.set(self.tensor_keys.priority, metadata.pop("td_error").max(0)[0])
         out = TensorDict(
             {"loss_actor": loss_actor, "loss_value": loss_value, **metadata, **metadata_actor}

@@ -12,7 +12,7 @@ from tensordict.utils import NestedKey
 from torch.nn import functional as F
 from torchrl.objectives import LossModule
 
-from torchrl_rave._checks import check_not_empty, get_checked
+from torchrl_rave._checks import check_finite_losses, check_not_empty, get_checked
 from torchrl_rave.modules.world_model import WorldModelEnsemble
 
 __all__ = ["WorldModelEnsembleLoss", "gaussian_nll"]
@@ -145,7 +145,7 @@ class WorldModelEnsembleLoss(LossModule):
         obs = read(keys.observation, S).reshape(-1, S)
         action = read(keys.action, A).reshape(-1, A)
         next_obs = read(keys.next_observation, S).reshape(-1, S)
-        reward = read(keys.reward).reshape(-1, 1)
+        reward = read(keys.reward, floating=True).reshape(-1, 1)
         terminated = (
             get_checked(tensordict, keys.terminated, check_finite=check)
             .reshape(-1, 1)
@@ -182,6 +182,12 @@ class WorldModelEnsembleLoss(LossModule):
         loss_transition = transition_nll.sum() + c * wm.transition.bound_penalty()
         loss_reward = self.reward_coeff * (reward_nll.sum() + c * wm.reward_model.bound_penalty())
         loss_termination = self.termination_coeff * termination_bce.sum()
+        if check:
+            check_finite_losses(
+                type(self).__name__,
+                {"loss_transition": loss_transition, "loss_reward": loss_reward},
+                tensordict, [keys.observation, keys.action, keys.next_observation, keys.reward],
+            )  # fmt: skip
         with torch.no_grad():
             accuracy = ((logits > 0).to(terminated.dtype) == terminated).to(obs.dtype).mean()
         return TensorDict(
