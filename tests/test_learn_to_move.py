@@ -286,3 +286,35 @@ def test_distillation_noises_the_range_the_task_can_produce_at_the_stage_speed(t
     assert result["noise"] == [-2.5, 2.5] and result["target"] == [0, 242]
     with pytest.raises(ValueError, match="take one value in the 40 pairs"):
         distill_run(run, tmp_path / "degenerate", slice(0, 242), frames=40, steps=5)
+
+
+def test_grader_scoring_pays_footsteps_a_step_late_and_round_one_its_bonus_alone():
+    """``scoring="grader"`` by hand from the recorded contacts: osim-rl scores a step
+    before it updates the contacts, so a footstep that lands in step t is paid in step
+    t + 1, with 10 x the time since the last paid one; osim-rl 3.0.6's fresh env starts
+    with no contact (the standing start is a footstep), and its time limit pays 10 alone."""
+    env = L.LearnToMoveEnv("2D", difficulty=0, time_limit=60, scoring="grader",
+                           integrator_accuracy=1e-3)  # fmt: skip
+    assert L.LearnToMoveEnv("2D", scoring="grader").integrator_accuracy == 5e-5
+    env.reset(seed=0)
+    assert [e.getValue() for e in env._excitations] == [1.0] * 22  # a fresh osim-rl env's
+    rng = np.random.default_rng(0)
+    contact, late, since, paid = {"r": False, "l": False}, False, 0.0, []
+    for t in range(60):
+        _, _, terminated, truncated, info = env.step(rng.uniform(0, 0.3, 22))
+        since += DT
+        expected = 10 * since if late else 0.0
+        if late:
+            since = 0.0
+        now = {s: env.foot_force(s)[1] < -0.05 * env.body_weight for s in ("r", "l")}
+        late = any(now[s] and not contact[s] for s in now)
+        contact = now
+        terms = info["reward_terms"]
+        assert terms["footstep"] == pytest.approx(expected, abs=1e-12), t
+        paid.append(expected > 0)
+        if terminated:
+            break
+    assert paid[1]  # the standing start, detected in the first step, paid in the second
+    assert truncated and terms["success"] == 10.0  # no unfinished step's term beside it
+    with pytest.raises(ValueError, match="scoring must be one of"):
+        L.LearnToMoveEnv("2D", scoring="osim")

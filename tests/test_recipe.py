@@ -176,6 +176,17 @@ class TestExploration:
 
 
 class TestConfigErrors:
+    def test_an_empty_resume_is_refused(self, tmp_path):
+        """The probe: ``resume=`` (empty) started a new default run and exited 0."""
+        done = subprocess.run(
+            [sys.executable, str(RECIPES / "rave_mujoco.py"), "resume=",
+             f"hydra.run.dir={tmp_path / 'run'}"],
+            capture_output=True, text=True, timeout=300,
+        )  # fmt: skip
+        assert done.returncode == 1 and "Traceback" not in done.stderr
+        assert "resume= takes the run directory to continue" in done.stderr
+        assert not (tmp_path / "run" / "checkpoints").exists()
+
     @pytest.mark.parametrize(
         "override, message",
         [
