@@ -92,3 +92,23 @@ def test_the_first_stage_builds_the_training_and_evaluation_envs(tmp_path, monke
                                    "curriculum.stages=[4.0,2.0]", "curriculum.thresholds=[1e9]",
                                    "collector.total_frames=200"), str(tmp_path / "bad"))  # fmt: skip
     assert not any((tmp_path / "bad").glob("*/scalars/train/*.csv")), err.value
+
+
+def test_a_checkpoint_whose_stage_is_not_a_stage_is_named(tmp_path):
+    """The probe: a tampered ``curriculum_stage`` gave a ValueError traceback."""
+    from test_trust import component, rechecksum
+
+    from torchrl_rave.recipe.checkpoint import RunCheckpoint
+
+    run = tmp_path / "run"
+    args = [*TINY, "env.name=terms_env:LevelPendulum-v0", "algorithm=ddpg", "eval.interval=100",
+            "eval.episodes=1", "curriculum.kwarg=level", "curriculum.stages=[4.0,2.0]",
+            "curriculum.thresholds=[1e9]"]  # fmt: skip
+    rave_mujoco.train(make_cfg(*args, "collector.total_frames=100"), str(run))
+    for checkpoint in RunCheckpoint(run).checkpoints():
+        path = component(checkpoint, "counters") / "value.json"
+        path.write_text(path.read_text().replace('"curriculum_stage": 0', '"curriculum_stage": 7'))
+        rechecksum(checkpoint)
+    with pytest.raises(ValueError, match="checkpoint-0+100: its counters hold curriculum_stage="
+                       "7, not a stage of curriculum.stages \\(2 stages"):  # fmt: skip
+        rave_mujoco.train(make_cfg(*args, f"resume={run}", "collector.total_frames=200"), "x")

@@ -298,6 +298,14 @@ class TestCheckpoints:
         assert len(rb) == 100
         assert torch.isfinite(rb[:100]["next", "observation"]).all()
 
+    def test_a_groups_nan_stop_names_its_checkpoints(self, tmp_path):
+        """The probe: a seed group's NaN stop said "checkpoint None holds everything"."""
+        cfg = make_cfg(*TINY, "env.name=NaNInvertedPendulum-v0", "algorithm=ddpg", "seeds=[0,1]")
+        with pytest.raises(NonFiniteEnvOutput, match="checkpoints .*seed0/checkpoints/"
+                           "checkpoint-0+100, .*seed1/checkpoints/checkpoint-0+100 hold "
+                           "everything up to that frame"):  # fmt: skip
+            rave_mujoco.train(cfg, str(tmp_path))
+
     def test_huge_observations_stop_with_a_checkpoint_before_reaching_the_model(self, tmp_path):
         """Issue 39, defect 9: observations of 1e20 made the world model's normalisers
         non-finite and its parameters NaN after one step, with no error."""
