@@ -201,3 +201,12 @@ def test_a_seed_group_trains_on_cuda(algorithm, tmp_path):
     grouped = read_scalar(tmp_path / "group" / "seed1", "train/loss_critic", algorithm)[0][1]
     single = read_scalar(tmp_path / "one", "train/loss_critic", algorithm)[0][1]
     assert grouped == pytest.approx(single, rel=1e-2)
+
+
+def test_the_readmes_swap_runs_with_models_on_the_gpu_and_the_buffer_on_the_cpu(capsys):
+    """The README's block is shaped as TorchRL's sota scripts are: models on
+    ``get_available_device()`` (here the GPU), the replay buffer on the CPU; the world
+    model's trainer moves what it samples."""
+    import test_readme
+
+    test_readme.test_use_rave_in_your_own_loss(capsys)

@@ -358,11 +358,17 @@ def test_the_estimators_diagnostics_are_in_the_loss_output():
     loss = make_loss(3, estimator="rave")
     out = loss(batch(B=6))
     diag, keys = loss.value_estimator.diagnostics, loss.value_estimator.tensor_keys
-    assert out[keys.alpha].shape == () and out[keys.horizon_weights].shape == (3,)  # H = 2
+    # every entry a scalar, so that a stock script logging each output's mean logs them
+    # (a [H + 1] vector of weights logged as its mean was a constant 1 / (H + 1))
+    diagnostics = [k for k in out.keys() if k.startswith("rave_")]
+    assert len(diagnostics) == 7 and all(out[k].shape == () for k in diagnostics)
     torch.testing.assert_close(out[keys.alpha], diag[keys.alpha].mean())
-    torch.testing.assert_close(out[keys.horizon_weights], diag[keys.horizon_weights].mean(0))
-    torch.testing.assert_close(out[keys.horizon_variance], diag[keys.horizon_variance].mean(0))
-    assert out[keys.horizon_weights].sum().item() == pytest.approx(1.0)
+    weights = [out[f"{keys.horizon_weights}_h{H}"] for H in range(3)]  # H = 0, 1, 2
+    variances = [out[f"{keys.horizon_variance}_h{H}"] for H in range(3)]
+    torch.testing.assert_close(torch.stack(weights), diag[keys.horizon_weights].mean(0))
+    torch.testing.assert_close(torch.stack(variances), diag[keys.horizon_variance].mean(0))
+    assert sum(weights).item() == pytest.approx(1.0)
+    assert f"{keys.horizon_weights}_h3" not in out.keys()
     assert keys.alpha == "rave_alpha"  # never SAC's "alpha"
     assert not make_loss(3)(batch(B=6)).keys() & {keys.alpha, "steve_alpha"}  # TD(0): none
 

@@ -27,12 +27,15 @@ def test_use_rave_in_your_own_loss(capsys):
     assert type(loss.value_estimator).__name__ == "RAVEValueEstimator"
     weights = loss.value_estimator.diagnostics["rave_horizon_weights"]
     assert weights.shape == (256, 4)
-    torch.testing.assert_close(weights.sum(-1), torch.ones(256))
+    torch.testing.assert_close(weights.sum(-1), torch.ones(256, device=weights.device))
     # 20 agent updates: 50 pretraining model steps once, then one per agent update
     assert (wm_trainer.calls, wm_trainer.updates) == (20, 70)
     assert int(scope["world_model"].obs_norm.count) == 750
     assert torch.isfinite(scope["loss_value"]) and torch.isfinite(scope["loss_actor"])
-    assert "tensor(" in capsys.readouterr().out
+    printed = capsys.readouterr().out  # one scalar per horizon, alpha, the model's losses
+    for key in ("rave_alpha", "rave_horizon_weights_h3", "rave_horizon_variance_h0",
+                "wm/loss_transition"):  # fmt: skip
+        assert f"'train/{key}': tensor(" in printed, key
     # the swap is short: the lines marked RAVE are all a DDPG script changes
     assert sum("# RAVE" in line for line in section_code_lines()) <= 10
 

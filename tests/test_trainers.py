@@ -51,6 +51,24 @@ class TestWorldModelTrainer:
         for a, b in zip(models[0].parameters(), models[1].parameters(), strict=True):
             torch.testing.assert_close(a, b)
 
+    def test_what_it_samples_and_extends_goes_to_the_models_device(self, monkeypatch):
+        """TorchRL's sota scripts keep the replay buffer on the CPU and the models on
+        ``get_available_device()``: the batches must reach the model's device. A CPU-only
+        machine stands in a second device with ``meta``, recording what each step and
+        each normaliser update received instead of running it."""
+        meta = torch.device("meta")
+        trainer = WorldModelTrainer(small_model(), pretrain_updates=2)
+        monkeypatch.setattr(WorldModelTrainer, "device", property(lambda self: meta))
+        seen = []
+        monkeypatch.setattr(trainer, "_update", lambda batch: seen.append(batch.device))
+        monkeypatch.setattr(trainer.world_model, "update_normalizers_from",
+                            lambda data: seen.append(data.device))  # fmt: skip
+        rb = buffer()  # stored on the CPU
+        trainer.extend(transitions(10))
+        trainer.step(rb)  # two pretraining steps and one step
+        trainer.update(transitions(8))
+        assert seen == [meta] * 5
+
     def test_extend_updates_the_normalisers(self):
         wm = small_model()
         before = int(wm.obs_norm.count)

@@ -31,8 +31,11 @@ class WorldModelTrainer(TrainerHookBase):
       these calls) once ``F`` frames are stored, e.g. with the collector's
       ``init_random_frames``.
 
-    Each model step samples its own batch, computes :class:`WorldModelEnsembleLoss`
-    (transition + reward + termination) and takes one optimiser step. ``state_dict``
+    Each model step samples its own batch, moves it to the model's device (TorchRL's
+    scripts keep the replay buffer on the CPU and the models on
+    ``get_available_device()``; :meth:`extend` moves its batch likewise), computes
+    :class:`WorldModelEnsembleLoss` (transition + reward + termination) and takes one
+    optimiser step, whose loss terms :meth:`step` returns for logging. ``state_dict``
     holds the optimiser and the schedule, so a resumed run continues it exactly.
     As a :class:`~torchrl.trainers.TrainerHookBase`, :meth:`register` hooks the same two
     calls into a TorchRL ``Trainer``.
@@ -93,9 +96,14 @@ class WorldModelTrainer(TrainerHookBase):
         self._loss_total = self._loss_total_eager
 
     # ---------------------------------------------------------------- the loop
+    @property
+    def device(self) -> torch.device:
+        """The world model's device, where every batch is moved before use."""
+        return next(self.world_model.parameters()).device
+
     def extend(self, data: TensorDictBase) -> None:
-        """Merges a batch of real transitions into the model's normalisers."""
-        self.world_model.update_normalizers_from(data)
+        """Merges a batch of real transitions (on any device) into the model's normalisers."""
+        self.world_model.update_normalizers_from(self._on_device(data))
 
     def step(self, source: ReplayBuffer | TensorDictBase) -> TensorDictBase | None:
         """Call once per agent update; returns the last model step's loss outputs
@@ -122,9 +130,10 @@ class WorldModelTrainer(TrainerHookBase):
         return out
 
     def update(self, batch: TensorDictBase) -> TensorDictBase:
-        """One optimiser step of the model on ``batch``; returns the loss outputs."""
+        """One optimiser step of the model on ``batch`` (moved to the model's device);
+        returns the loss outputs."""
         self.updates += 1
-        return self._update(batch)
+        return self._update(self._on_device(batch))
 
     def compile(self, mode: str | None = None) -> WorldModelTrainer:
         """Runs :meth:`update`'s loss forward (and so its backward) through
@@ -136,6 +145,12 @@ class WorldModelTrainer(TrainerHookBase):
     @staticmethod
     def _batch(source) -> TensorDictBase:
         return source.sample() if isinstance(source, ReplayBuffer) else source
+
+    def _on_device(self, data: TensorDictBase) -> TensorDictBase:
+        device = self.device
+        if data.device == device:
+            return data
+        return data.to(device, non_blocking=device.type == "cuda")  # to a GPU: stream-ordered
 
     def _loss_total_eager(self, batch: TensorDictBase):
         out = self.loss(batch)
