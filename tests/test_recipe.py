@@ -680,3 +680,28 @@ class TestLoggers:
         overrides[-1] = "collector.total_frames=400"
         rave_mujoco.train(make_cfg(*overrides, f"resume={tmp_path}"), "unused")
         assert RunCheckpoint(tmp_path).read("logger")["local"]["id"] == run_id
+
+
+def test_a_run_that_cannot_learn_is_warned_about_before_any_work(tmp_path):
+    """The probe: ``collector.total_frames=600`` with 1,000 random frames collected 750
+    frames and made 0 updates, which only the summary's "0 updates" gave away. A warning,
+    not an error: a run that only collects is allowed."""
+    from torchrl_rave.recipe.config import NoUpdatesWarning
+
+    cfg = make_cfg("algorithm=ddpg", "collector.total_frames=600", "collector.frames_per_batch=250",
+                   "collector.init_random_frames=1000", "eval.interval=750")  # fmt: skip
+    with pytest.warns(NoUpdatesWarning, match=r"this run makes no update: it collects 750 frames "
+                      r"\(collector.total_frames=600 in batches of 250\) and learning waits for "
+                      r"1000 stored frames \(collector.init_random_frames=1000\)"):  # fmt: skip
+        result = rave_mujoco.train(cfg, str(tmp_path / "run"))
+    assert result["updates"] == 0
+    model_based = make_cfg(*TINY, "algorithm=rave", "collector.total_frames=200")
+    with pytest.warns(NoUpdatesWarning, match="world_model.pretrain_frames=200"):
+        from torchrl_rave.recipe.config import warn_if_no_updates
+
+        warn_if_no_updates(model_based)
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", NoUpdatesWarning)
+        warn_if_no_updates(make_cfg(*TINY, "algorithm=rave"))  # 400 frames: it learns

@@ -29,12 +29,15 @@ __all__ = [
     "FIXED_ON_RESUME",
     "Algorithm",
     "ConfigError",
+    "NoUpdatesWarning",
     "check_command_line",
     "check_config",
     "check_resumable",
     "num_critics",
     "replay_buffer_size",
+    "learning_start",
     "resolve_config",
+    "warn_if_no_updates",
     "world_model_sizes",
 ]
 
@@ -479,6 +482,44 @@ def apply_process_settings(cfg: DictConfig) -> None:
         torch.set_num_threads(cfg.threads)
     if cfg.keep_freed_memory:
         memory.keep_freed_memory()
+
+
+class NoUpdatesWarning(UserWarning):
+    """A run's config leaves it no frame to learn from: it would collect and make no
+    update (e.g. ``collector.total_frames`` below ``collector.init_random_frames``)."""
+
+
+def learning_start(cfg: DictConfig) -> tuple[int, str]:
+    """The stored frames an off-policy run waits for before its first update, and the
+    key that sets them: the largest of ``collector.init_random_frames``,
+    ``replay_buffer.batch_size`` and, for a model-based algorithm,
+    ``world_model.pretrain_frames``."""
+    starts = [(cfg.collector.init_random_frames, "collector.init_random_frames"),
+              (cfg.replay_buffer.batch_size, "replay_buffer.batch_size")]  # fmt: skip
+    if ALGORITHMS[cfg.algorithm].model_based:
+        starts.append((cfg.world_model.pretrain_frames, "world_model.pretrain_frames"))
+    return max(starts, key=lambda s: s[0])
+
+
+def warn_if_no_updates(cfg: DictConfig) -> None:
+    """Warns (:class:`NoUpdatesWarning`, before any work) when an off-policy run would end
+    before its first update: the collector gathers whole batches, and the frames past
+    :func:`learning_start` each bring ``optim.utd_ratio`` updates. A warning, not an
+    error: a run that only collects (a smoke test, a random-policy dataset) is allowed."""
+    if ALGORITHMS[cfg.algorithm].on_policy:
+        return
+    c = cfg.collector
+    collected = -(-c.total_frames // c.frames_per_batch) * c.frames_per_batch
+    start, key = learning_start(cfg)
+    if cfg.optim.utd_ratio * (collected - start) < 1:
+        warnings.warn(
+            f"this run makes no update: it collects {collected} frames "
+            f"(collector.total_frames={c.total_frames} in batches of {c.frames_per_batch}) "
+            f"and learning waits for {start} stored frames ({key}={start}); raise "
+            f"collector.total_frames above {start} (or lower {key}) for a run that learns",
+            NoUpdatesWarning,
+            stacklevel=3,
+        )
 
 
 def replay_buffer_size(cfg: DictConfig) -> int:

@@ -65,6 +65,7 @@ from torchrl_rave.recipe.config import (
     ConfigError,
     apply_process_settings,
     check_resumable,
+    learning_start,
     replay_buffer_size,
 )
 from torchrl_rave.recipe.episode import EpisodeCheckpoint, resume_collecting
@@ -460,11 +461,9 @@ def update_group_on_batch(cfg: DictConfig, seeds, group, counters: dict, n_frame
     world model's pretraining and ``train_every``, every step one group call on the seeds'
     own samples. Returns each seed's training metrics."""
     acc = [defaultdict(list) for _ in seeds]
-    start_frames = max(cfg.collector.init_random_frames, cfg.replay_buffer.batch_size)
+    start_frames = learning_start(cfg)[0]
     trainers = [s.agent.world_model_trainer for s in seeds]
     model_based = trainers[0] is not None
-    if model_based:
-        start_frames = max(start_frames, cfg.world_model.pretrain_frames)
     if counters["frames"] < start_frames:
         return acc
 

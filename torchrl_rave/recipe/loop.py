@@ -51,8 +51,10 @@ from torchrl_rave.recipe.config import (
     apply_process_settings,
     check_config,
     check_resumable,
+    learning_start,
     replay_buffer_size,
     resolve_config,
+    warn_if_no_updates,
 )
 from torchrl_rave.recipe.curriculum import make_curriculum, stage_config
 from torchrl_rave.recipe.episode import EpisodeCheckpoint, resume_collecting
@@ -68,6 +70,7 @@ def train(cfg: DictConfig, run_dir: str) -> dict[str, float]:
     may train into meanwhile (:func:`exclusive_run`). A new run into a directory that
     holds one already is refused (``FileExistsError``, naming ``resume=``)."""
     check_config(cfg)
+    warn_if_no_updates(resolve_config(cfg))
     if not cfg.resume:
         check_new_run_dir(run_dir, group=cfg.get("seeds") is not None)
         Path(run_dir).mkdir(parents=True, exist_ok=True)
@@ -315,10 +318,8 @@ def update_on_batch(
     """The updates a batch of ``n_frames`` new frames pays for (``optim.utd_ratio`` per
     frame once the learning starts); returns the training metrics of each update."""
     acc = defaultdict(list)
-    start_frames = max(cfg.collector.init_random_frames, cfg.replay_buffer.batch_size)
+    start_frames = learning_start(cfg)[0]
     wm_trainer = agent.world_model_trainer
-    if wm_trainer is not None:
-        start_frames = max(start_frames, cfg.world_model.pretrain_frames)
     if counters["frames"] < start_frames:
         return acc
     if wm_trainer is not None:
