@@ -29,5 +29,5 @@ def main(cfg: DictConfig) -> float:
 
 
 if __name__ == "__main__":
-    exit_on_bad_command_line(sys.argv[1:])
+    exit_on_bad_command_line(sys.argv[1:], "python recipes/rave_mujoco.py")
     main()

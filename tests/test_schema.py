@@ -109,7 +109,8 @@ class TestAllProblemsAtOnce:
             "config key optim.gamma=1.5 is invalid: expected in [0, 1]",
             "config key compile.enabled='maybe' is invalid: expected true or false",
             "config key env.action_noise=-1 is invalid: expected a finite number >= 0",
-            "config key estimator.hoirzon is not a key of the recipe",
+            "config key estimator.hoirzon is not a key of the recipe; did you mean "
+            "estimator.horizon? (--help lists every key)",
             "config key collector.frames_per_batch=20000 is invalid: expected <= "
             "collector.total_frames (15000)",
         ])  # fmt: skip
@@ -180,11 +181,29 @@ class TestAllProblemsAtOnce:
         assert "Traceback" not in done.stderr + done.stdout
         assert done.stderr.strip().splitlines() == [
             "3 problems in the config:",
-            "  config key estimator.hoirzon is not a key of the recipe",
+            "  config key estimator.hoirzon is not a key of the recipe; did you mean "
+            "estimator.horizon? (--help lists every key)",
             "  config key collector.total_frames='abc' is invalid: expected a value of type int",
             "  config key optim.gamma=1.5 is invalid: expected in [0, 1]",
         ]
         assert not run.exists()  # nothing was built or written
+
+    def test_help_lists_every_key_with_its_default_rule_and_help(self):
+        """``--help`` listed the keys without the help strings the schema holds; an
+        unknown key now names the nearest known one (``optim.batch_size``)."""
+        from torchrl_rave.recipe.schema import schema_fields
+
+        done = subprocess.run([sys.executable, str(RECIPE), "--help"], capture_output=True,
+                              text=True, timeout=300)  # fmt: skip
+        assert done.returncode == 0
+        lines = done.stdout.splitlines()
+        for name, f in schema_fields():
+            (at,) = [i for i, line in enumerate(lines) if line.startswith(f"  {name}=")]
+            assert lines[at + 1].split() == f.metadata["help"].replace("`", "").split()
+        assert "  replay_buffer.batch_size=128   (an integer >= 1)" in lines
+        with pytest.raises(ConfigError, match="optim.batch_size is not a key of the recipe; "
+                           "did you mean replay_buffer.batch_size"):  # fmt: skip
+            check_command_line(["optim.batch_size=256"])
 
     def test_a_resume_path_with_no_run_is_named(self, tmp_path):
         """A missing path, a directory with no checkpoint and a run's checkpoints/ folder

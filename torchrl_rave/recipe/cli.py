@@ -20,7 +20,7 @@ from omegaconf import DictConfig
 from torchrl_rave.recipe.checkpoint import config_for_resume
 from torchrl_rave.recipe.config import ConfigError, check_command_line, override_keys
 from torchrl_rave.recipe.loop import train
-from torchrl_rave.recipe.schema import defaults, with_algorithm_preset
+from torchrl_rave.recipe.schema import defaults, help_text, with_algorithm_preset
 
 __all__ = ["exit_on_bad_command_line", "main", "run_job"]
 
@@ -30,9 +30,13 @@ ConfigStore.instance().store(
 )
 
 
-def exit_on_bad_command_line(argv: list[str]) -> None:
+def exit_on_bad_command_line(argv: list[str], command: str = "torchrl-rave-train") -> None:
     """Exits with every problem of the command line's overrides in one message (hydra
-    itself would stop at the first unknown key, with a traceback hint)."""
+    itself would stop at the first unknown key, with a traceback hint). ``--help`` (or
+    ``-h``) prints every key with its default, rule and help line, and exits."""
+    if "--help" in argv or "-h" in argv:
+        print(help_text(command), end="")
+        raise SystemExit(0)
     overrides = [a for a in argv if not a.startswith("-")]  # hydra's flags (-m, --cfg, ...)
     try:
         check_command_line(overrides)

@@ -7,6 +7,7 @@ at once in one :class:`ConfigError`, before any env is built.
 
 from __future__ import annotations
 
+import difflib
 import importlib
 import importlib.util
 import math
@@ -137,10 +138,20 @@ def _check_keys(cfg: DictConfig, problems: list[str]) -> set[str]:
             if full in groups and isinstance(node[name], DictConfig):
                 unknown(node[name], f"{full}.")
             else:
-                problems.append(f"config key {full} is not a key of the recipe")
+                problems.append(_unknown_key(full))
 
     unknown(cfg, "")
     return bad
+
+
+def _unknown_key(key: str) -> str:
+    """The problem of a key the schema does not have, with the nearest known keys: those
+    of the same last name first (``optim.batch_size`` -> ``replay_buffer.batch_size``),
+    then the closest spellings."""
+    same_leaf = [k for k in _SCHEMA if k.rsplit(".", 1)[-1] == key.rsplit(".", 1)[-1]]
+    close = same_leaf or difflib.get_close_matches(key, list(_SCHEMA), n=3, cutoff=0.8)
+    hint = f"; did you mean {' or '.join(close)}?" if close else ""
+    return f"config key {key} is not a key of the recipe{hint} (--help lists every key)"
 
 
 def check_config(cfg: DictConfig) -> Algorithm:
@@ -330,7 +341,7 @@ def check_command_line(overrides: list[str]) -> None:
                 problems.append(_invalid("preset", preset, f"one of {list(PRESETS)}"))
             continue
         if key not in _SCHEMA and not any(key.startswith(f"{d}.") for d in dict_keys):
-            problems.append(f"config key {key} is not a key of the recipe")
+            problems.append(_unknown_key(key))
         elif key in _SCHEMA and not o.is_sweep_override():  # a -m sweep's values: hydra's
             resume = resume or (key == "resume" and o.value() is not None)
             values[key] = o.value()

@@ -47,6 +47,7 @@ __all__ = [
     "PRESET_ALGORITHMS",
     "RecipeConfig",
     "default_config",
+    "help_text",
     "preset_values",
     "schema_fields",
     "with_algorithm_preset",
@@ -599,6 +600,29 @@ def schema_fields(cls=RecipeConfig, prefix: str = ""):
             yield from schema_fields(type(default), f"{prefix}{f.name}.")
         else:
             yield f"{prefix}{f.name}", f
+
+
+def help_text(command: str) -> str:
+    """``--help`` of the recipe's commands: every key with its default (the ``cpu``
+    preset) and its help line, grouped as the schema is."""
+    lines = [
+        f"usage: {command} [KEY=VALUE ...]   (hydra's own flags: --hydra-help)",
+        "",
+        "Trains one run into outputs/<date>/<time>/ (resume=<run dir> continues one).",
+        f"preset=: one of {list(PRESETS)} (default cpu), applied under the command line.",
+    ]
+    group = None
+    for name, f in schema_fields():
+        head = name.split(".")[0] if "." in name else ""
+        if head != group:
+            group = head
+            lines += ["", f"{group}:" if group else "top level:"]
+        default = f.default_factory() if f.default is MISSING else f.default
+        shown = "null" if default is None else repr(default) if default == "" else default
+        rule = f.metadata.get("rule")
+        lines.append(f"  {name}={shown}" + (f"   ({rule.expected})" if rule else ""))
+        lines.append(f"      {' '.join(f.metadata['help'].replace('`', '').split())}")
+    return "\n".join(lines) + "\n"
 
 
 def defaults() -> DictConfig:
