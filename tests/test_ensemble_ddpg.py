@@ -281,10 +281,13 @@ def _float_terminated(td):
 _BAD_BATCHES = [
     ("td0", _without_action, "no entry 'action'"),
     # the probes: these ended in TorchRL's errors, which name neither entry nor shape
-    ("td0", _wide_reward, "entry \('next', 'reward'\) has shape \(6, 2\), expected \(6, 1\)"),
-    ("td0", _flat_reward, "entry \('next', 'reward'\) has shape \(6,\), expected \(6, 1\)"),
-    ("td0", _float_terminated, "entry \('next', 'terminated'\) is torch.float32, expected "
-     "torch.bool"),
+    ("td0", _wide_reward, r"entry \('next', 'reward'\) has shape \(6, 2\), expected \(6, 1\)"),
+    ("td0", _flat_reward, r"entry \('next', 'reward'\) has shape \(6,\), expected \(6, 1\)"),
+    (
+        "td0",
+        _float_terminated,
+        r"entry \('next', 'terminated'\) is torch.float32, expected torch.bool",
+    ),
     # issue 39, defect 9: integer rewards and actions were cast silently
     ("td0", _int64_reward, "entry \\('next', 'reward'\\) is torch.int64, expected a floating"),
     ("rave", _int64_reward, "entry \\('next', 'reward'\\) is torch.int64, expected a floating"),
@@ -318,8 +321,16 @@ _BAD_BATCHES = [
         # the actor loss reads no action and no reward
         if not (
             method == "loss_actor"
-            and case[1] in (_without_action, _inf_reward, _int64_reward, _int64_action,
-                            _wide_reward, _flat_reward, _float_terminated)
+            and case[1]
+            in (
+                _without_action,
+                _inf_reward,
+                _int64_reward,
+                _int64_action,
+                _wide_reward,
+                _flat_reward,
+                _float_terminated,
+            )
         )
     ],
 )
@@ -360,7 +371,8 @@ def test_the_estimators_diagnostics_are_in_the_loss_output():
     diag, keys = loss.value_estimator.diagnostics, loss.value_estimator.tensor_keys
     # every entry a scalar, so that a stock script logging each output's mean logs them
     # (a [H + 1] vector of weights logged as its mean was a constant 1 / (H + 1))
-    diagnostics = [k for k in out.keys() if k.startswith("rave_")]
+    names = out.keys()  # (iterating a TensorDict itself runs along its batch)
+    diagnostics = [k for k in names if k.startswith("rave_")]
     assert len(diagnostics) == 7 and all(out[k].shape == () for k in diagnostics)
     torch.testing.assert_close(out[keys.alpha], diag[keys.alpha].mean())
     weights = [out[f"{keys.horizon_weights}_h{H}"] for H in range(3)]  # H = 0, 1, 2
@@ -368,7 +380,7 @@ def test_the_estimators_diagnostics_are_in_the_loss_output():
     torch.testing.assert_close(torch.stack(weights), diag[keys.horizon_weights].mean(0))
     torch.testing.assert_close(torch.stack(variances), diag[keys.horizon_variance].mean(0))
     assert sum(weights).item() == pytest.approx(1.0)
-    assert f"{keys.horizon_weights}_h3" not in out.keys()
+    assert f"{keys.horizon_weights}_h3" not in names
     assert keys.alpha == "rave_alpha"  # never SAC's "alpha"
     assert not make_loss(3)(batch(B=6)).keys() & {keys.alpha, "steve_alpha"}  # TD(0): none
 

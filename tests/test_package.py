@@ -177,8 +177,11 @@ def _requirement_names(specs: list[str]) -> set[str]:
 
 
 def test_dependencies_are_what_the_package_imports():
+    """The components (everything outside ``recipe/``) import only the core dependencies
+    at module level; the recipe may import its extra too; optional families anything."""
     project = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]
     required = _requirement_names(project["dependencies"])
+    recipe = _requirement_names(project["optional-dependencies"]["recipe"])
     extras = set().union(
         *(_requirement_names(v) for v in project["optional-dependencies"].values())
     )
@@ -191,9 +194,69 @@ def test_dependencies_are_what_the_package_imports():
                 continue
             names = {d.lower() for d in distributions.get(module, [module])}
             used |= names
-            allowed = required if at_top and rel not in ON_DEMAND else required | extras
+            if at_top and rel not in ON_DEMAND:
+                allowed = required | (recipe if rel.startswith("recipe/") else set())
+            else:
+                allowed = required | extras
             if not names & allowed:
                 problems.append(f"{rel} imports {module} ({sorted(names)}), not declared")
     assert problems == []
     # and nothing is declared that no module imports
-    assert sorted(required - used - RUNTIME_ONLY) == []
+    assert sorted(required - used) == []
+    assert sorted(recipe - used - RUNTIME_ONLY) == []
+
+
+# A lean install: the recipe's extra is not there. The fresh venv's dependencies come from
+# this test environment, so its modules are hidden from the interpreter instead.
+LEAN = """
+import sys
+for name in ("hydra", "omegaconf", "tqdm", "scipy", "mujoco"):
+    sys.modules[name] = None  # import raises ModuleNotFoundError, find_spec returns None
+"""
+
+COMPONENTS = """
+import json, torch
+import torchrl_rave
+from torchrl_rave import EnsembleDDPGLoss, RAVEValueEstimator, WorldModelEnsemble
+from torchrl.modules import MLP, Actor, ValueOperator
+from tensordict import TensorDict
+
+actor = Actor(MLP(in_features=3, out_features=1, num_cells=[8]))
+critic = ValueOperator(MLP(in_features=4, out_features=1, num_cells=[8]),
+                       in_keys=["observation", "action"])
+loss = EnsembleDDPGLoss(actor, critic, delay_actor=True, delay_value=True, num_value_nets=2)
+wm = WorldModelEnsemble(3, 1, num_models=2)
+loss.make_value_estimator(RAVEValueEstimator.for_loss(loss, world_model=wm, gamma=0.99))
+B = 5
+data = TensorDict(observation=torch.randn(B, 3), action=torch.rand(B, 1),
+                  next=TensorDict(observation=torch.randn(B, 3), reward=torch.randn(B, 1),
+                                  done=torch.zeros(B, 1, dtype=torch.bool),
+                                  terminated=torch.zeros(B, 1, dtype=torch.bool),
+                                  batch_size=[B]), batch_size=[B])
+wm.update_normalizers_from(data)
+out = loss(data)
+try:
+    import torchrl_rave.recipe
+    recipe = "imported"
+except ImportError as err:
+    recipe = str(err)
+print(json.dumps({"finite": bool(torch.isfinite(out["loss_value"])), "recipe": recipe}))
+"""
+
+
+def test_a_lean_install_runs_the_components_and_names_the_recipes_extra(fresh_venv):
+    """``pip install torchrl-rave`` without the ``recipe`` extra: the estimator, loss and
+    world model work; ``torchrl_rave.recipe`` and ``torchrl-rave-train`` name the extra."""
+    _, site, _, _ = fresh_venv
+    lean = "import sys; exec(open(sys.argv.pop(1)).read()); "
+    blocker = site.parent / "lean_install.py"
+    blocker.write_text(LEAN)
+    done = run_in(fresh_venv, lean + f"exec({COMPONENTS!r})", str(blocker))
+    assert done.returncode == 0, done.stderr[-3000:]
+    out = json.loads(done.stdout.strip().splitlines()[-1])
+    assert out["finite"]
+    assert "pip install 'torchrl-rave[recipe]'" in out["recipe"], out["recipe"]
+    command = run_in(fresh_venv, lean + f"exec({COMMAND!r})", str(blocker), "--help")
+    assert command.returncode == 1 and "Traceback" not in command.stderr
+    assert command.stderr.strip().startswith("torchrl-rave-train: torchrl_rave.recipe needs")
+    assert "pip install 'torchrl-rave[recipe]'" in command.stderr

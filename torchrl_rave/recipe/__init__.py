@@ -29,6 +29,7 @@ Examples:
     ('adaptive', 4)
 """
 
+from torchrl_rave.recipe import _requires  # noqa: F401  (first: names a missing extra)
 from torchrl_rave.recipe.agent import Agent, load_agent, load_policy, make_agent, make_env
 from torchrl_rave.recipe.checkpoint import RunCheckpoint
 from torchrl_rave.recipe.config import ALGORITHMS, ConfigError, check_config
