@@ -221,6 +221,15 @@ class RunCheckpoint:
     ``state_dict``/``load_state_dict`` (modules, optimisers, the world-model trainer),
     ``dump``/``load`` (the replay buffer) or plain JSON dicts (config, counters), updated
     in place on load; the process's RNG state is always included.
+
+    Why not ``torchrl.checkpoint.CheckpointRotation`` (torchrl 0.14), which keeps the
+    newest ``keep_last`` checkpoints of a directory too: it saves straight to the final
+    name and records no checksums, so its ``latest()`` / ``load_latest()`` return the
+    newest checkpoint whether or not a kill or a full disk damaged it, and its pruning
+    keeps a damaged newest one while deleting the older whole one. The rotation here is
+    the few lines around that: staging, checksums, the fallback past a damaged checkpoint
+    (set aside, not pruned), the free-space check, and refusing what no checkpoint of
+    ours holds (links, pickles, unlisted files).
     """
 
     def __init__(self, run_dir: str | Path) -> None:
