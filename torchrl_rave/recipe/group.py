@@ -198,19 +198,19 @@ def train_group(cfg: DictConfig, run_dir: str) -> dict[str, float]:
                 f"resume={str(root)!r} holds one run, not a seed group ({GROUP_FILE} is "
                 "missing): resume it without seeds=, or start a new group elsewhere"
             ])  # fmt: skip
-        missing = [s for s in cfg.seeds if not (root / f"seed{s}").is_dir()]
-        if missing:
-            raise ConfigError([
-                f"resume={str(root)!r}: {GROUP_FILE} names seed(s) {missing} that have no "
-                f"seed<s>/ directory under it; the file was edited, or a seed's directory "
-                "removed: restore it from a copy of the run directory"
-            ])  # fmt: skip
         saved = OmegaConf.create(group_config(root))
         if list(saved.seeds) != list(cfg.seeds):
             raise ConfigError([
                 f"resume={str(root)!r}: config key seeds is {list(cfg.seeds)} but the group "
                 f"was started with {list(saved.seeds)}; it cannot change on resume (train "
                 "other seeds as a new group)"
+            ])  # fmt: skip
+        missing = [s for s in cfg.seeds if not (root / f"seed{s}").is_dir()]
+        if missing:
+            raise ConfigError([
+                f"resume={str(root)!r}: {GROUP_FILE} names seed(s) {missing} that have no "
+                f"seed<s>/ directory under it; the file was edited, or a seed's directory "
+                "removed: restore it from a copy of the run directory"
             ])  # fmt: skip
         check_resumable(cfg, saved)
         cfg.replay_buffer.size = saved.replay_buffer.size
