@@ -513,30 +513,55 @@ class MVEEstimator(ValueExpansionEstimator):
     """MVE (paper eq. 5): the ensemble-mean ``H``-step expansion of deterministic (mean) rollouts.
 
     ``horizon`` is the fixed expansion length ``H``. Same keyword arguments as
-    :class:`ValueExpansionEstimator` except ``rollout``, ``mix`` and ``alpha``.
+    :class:`ValueExpansionEstimator` (``world_model``, ``actor_network``,
+    ``value_network`` and ``gamma`` required) except ``rollout``, ``mix`` and ``alpha``.
     """
 
     _AcceptedKeys = _accepted_keys("mve")
     default_keys = _AcceptedKeys
 
-    def __init__(self, *, horizon: int = 3, **kwargs) -> None:
-        super().__init__(horizon=horizon, rollout="mean", mix="fixed", alpha=0.0, **kwargs)
+    def __init__(
+        self,
+        *,
+        world_model: WorldModelEnsemble,
+        actor_network: TensorDictModuleBase,
+        value_network: TensorDictModuleBase,
+        gamma: float,
+        horizon: int = 3,
+        **kwargs,
+    ) -> None:
+        super().__init__(
+            world_model=world_model, actor_network=actor_network, value_network=value_network,
+            gamma=gamma, horizon=horizon, rollout="mean", mix="fixed", alpha=0.0, **kwargs,
+        )  # fmt: skip
 
 
 class STEVEEstimator(ValueExpansionEstimator):
     """STEVE (paper eq. 6): inverse-variance mix of ``H = 0..H_max`` over mean rollouts.
 
-    Same keyword arguments as :class:`ValueExpansionEstimator` except ``rollout``,
+    Same keyword arguments as :class:`ValueExpansionEstimator` (``world_model``,
+    ``actor_network``, ``value_network`` and ``gamma`` required) except ``rollout``,
     ``mix`` and ``alpha``.
     """
 
     _AcceptedKeys = _accepted_keys("steve")
     default_keys = _AcceptedKeys
 
-    def __init__(self, *, horizon: int = 3, **kwargs) -> None:
+    def __init__(
+        self,
+        *,
+        world_model: WorldModelEnsemble,
+        actor_network: TensorDictModuleBase,
+        value_network: TensorDictModuleBase,
+        gamma: float,
+        horizon: int = 3,
+        **kwargs,
+    ) -> None:
         super().__init__(
-            horizon=horizon, rollout="mean", mix="inverse_variance", alpha=0.0, **kwargs
-        )
+            world_model=world_model, actor_network=actor_network, value_network=value_network,
+            gamma=gamma, horizon=horizon, rollout="mean", mix="inverse_variance", alpha=0.0,
+            **kwargs,
+        )  # fmt: skip
 
 
 class RAVEValueEstimator(ValueExpansionEstimator):
@@ -549,6 +574,8 @@ class RAVEValueEstimator(ValueExpansionEstimator):
     ensemble".
 
     Keyword Args:
+        world_model, actor_network, value_network, gamma, horizon: as for
+            :class:`ValueExpansionEstimator` (``for_loss`` takes the networks from a loss).
         alpha (float): the constant ``alpha``. Defaults to 1.5.
         alpha_mode (str): ``"adaptive"`` (eq. 12, the default), ``"constant"``, or
             ``"tensordict"`` (read the :class:`~torchrl_rave.transforms.AdaptiveAlpha`
@@ -562,12 +589,20 @@ class RAVEValueEstimator(ValueExpansionEstimator):
     def __init__(
         self,
         *,
+        world_model: WorldModelEnsemble,
+        actor_network: TensorDictModuleBase,
+        value_network: TensorDictModuleBase,
+        gamma: float,
         horizon: int = 3,
         alpha: float = 1.5,
         alpha_mode: AlphaMode = "adaptive",
         **kwargs,
     ) -> None:
         super().__init__(
+            world_model=world_model,
+            actor_network=actor_network,
+            value_network=value_network,
+            gamma=gamma,
             horizon=horizon,
             rollout="sample",
             mix="inverse_variance",
