@@ -40,7 +40,7 @@ from torchrl_rave.objectives import (
 from torchrl_rave.trainers import WorldModelTrainer
 from torchrl_rave.transforms import AdaptiveAlpha
 
-__version__ = "0.1.0"
+__version__ = "0.2.0"
 
 __all__ = [
     "AdaptiveAlpha",
