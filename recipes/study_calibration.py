@@ -56,6 +56,8 @@ def calibration(study, results: Path, out: Path) -> list[str]:
                     floor = ends[1].mean() - ends[1].std(ddof=1)
                     checks.append(f"{'within' if ends[0].mean() >= floor else 'below'} the "
                                   f"reference's spread (>= {floor:.0f})")  # fmt: skip
+                else:  # half the bar: no verdict until the reference has run
+                    checks.append("reference not run yet")
                 verdict = "; ".join(checks)
             rows.append(f"| {entry.label} | {algorithm} | {cells[0]} | {cells[1]} | {pub} | "
                         f"{verdict} |")  # fmt: skip

@@ -4,6 +4,7 @@ once), and a real one-cell study that exports its cell and skips it on the next 
 from __future__ import annotations
 
 import json
+import shutil
 from pathlib import Path
 
 import numpy as np
@@ -603,3 +604,9 @@ def test_calibration_sets_ours_beside_the_reference_run_here_and_the_published(t
     assert "| Hopper-v5 | sac | ours | " + "n/a | " * 9 + "18 |" in table
     assert "| Hopper-v5 | sac | reference | " + "n/a | " * 9 + "100 |" in table
     assert (figures / "tiny_Hopper-v5_calibration.png").is_file()
+    # without the reference runs, half the bar stays unchecked, and the verdict says so
+    shutil.rmtree(results / "tiny_reference")
+    study.main(["report", "--config", str(config), "--results", str(results),
+                "--figures", str(figures)])  # fmt: skip
+    assert ("| Hopper-v5 | sac | 1800 ± 141 (2) | n/a | 2613 ± 991 | meets the bar 1622; "
+            "reference not run yet |") in (figures / "tiny.md").read_text()  # fmt: skip
