@@ -284,6 +284,9 @@ def test_distillation_noises_the_range_the_task_can_produce_at_the_stage_speed(t
     result = distill_run(run, tmp_path / "out", frames=40, steps=5)
     assert result["collected_with"] == {"difficulty": 0, "time_limit": 20, "constant_speed": 2.5}
     assert result["noise"] == [-2.5, 2.5] and result["target"] == [0, 242]
+    from torchrl_rave.recipe.checkpoint import saved_config
+
+    assert saved_config(tmp_path / "out").env.kwargs.constant_speed == 2.5  # recorded
     with pytest.raises(ValueError, match="take one value in the 40 pairs"):
         distill_run(run, tmp_path / "degenerate", slice(0, 242), frames=40, steps=5)
 

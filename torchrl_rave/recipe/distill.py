@@ -125,7 +125,8 @@ def distill_run(
     ``trust`` as for :func:`~torchrl_rave.recipe.agent.load_agent`.
 
     The pairs are collected in the env of the curriculum stage the run had reached (a
-    ``curriculum.kwarg`` run's stage speed), recorded under ``collected_with``. With the
+    ``curriculum.kwarg`` run's stage speed), recorded under ``collected_with`` and in the
+    new run's saved ``env.kwargs``. With the
     env's own target part, the noise covers every value the task can produce there (the
     env's ``target_range``: for ``LearnToMove-v0``, ``[-v, v]`` with ``v`` its largest
     target speed), not only those seen in the pairs, which on a task with a constant
@@ -220,7 +221,9 @@ def distill_run(
     out.mkdir(parents=True, exist_ok=True)
     RunCheckpoint(out).save(
         int(counters["frames"]),
-        config=OmegaConf.to_container(cfg, resolve=True),
+        # the stage's env keywords, which the pairs were collected with, are the saved
+        # config's: a resumed curriculum sets the same value for the same stage
+        config=OmegaConf.to_container(env_cfg, resolve=True),
         counters=counters,
         replay_buffer=rb,
         logger={},
