@@ -33,7 +33,20 @@ def _setter_is_bypassed() -> bool:
 
 
 def patch_value_estimator_setter() -> bool:
-    """Makes ``loss.value_estimator = est`` install ``est``; returns whether a patch was needed."""
+    """Makes ``loss.value_estimator = est`` install ``est`` on every TorchRL loss; returns
+    whether a patch was needed (``False`` when the installed TorchRL already does it, or
+    the patch is in place).
+
+    An explicit opt-in, never applied on import: it replaces ``LossModule.__setattr__``
+    for the whole process, routing that one assignment to TorchRL's own property setter
+    (see the module docstring for why torchrl 0.14 needs it). ``make_value_estimator(est)``
+    installs an estimator without it.
+
+    Examples:
+        >>> from torchrl_rave import patch_value_estimator_setter
+        >>> patch_value_estimator_setter() in (True, False)
+        True
+    """
     if getattr(LossModule, "_rave_setter_patched", False) or not _setter_is_bypassed():
         return False
     original = LossModule.__setattr__

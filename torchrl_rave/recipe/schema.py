@@ -69,6 +69,8 @@ COMPILE_MODES = [None, "default", "reduce-overhead", "max-autotune", "max-autotu
 
 @dataclass
 class EnvConfig:
+    """The ``env.*`` keys (each with its default, rule and help on the recipe page)."""
+
     name: str = key(
         "InvertedPendulum-v5",
         (
@@ -107,6 +109,8 @@ class EnvConfig:
 
 @dataclass
 class CollectorConfig:
+    """The ``collector.*`` keys (each with its default, rule and help on the recipe page)."""
+
     total_frames: int = key(
         15_000,
         "environment frames in the run, rounded up to whole `collector.frames_per_batch` batches",
@@ -155,6 +159,8 @@ class CollectorConfig:
 
 @dataclass
 class RayConfig:
+    """The ``ray.*`` keys (each with its default, rule and help on the recipe page)."""
+
     address: str | None = key(
         None,
         (
@@ -190,6 +196,8 @@ class RayConfig:
 
 @dataclass
 class ReplayBufferConfig:
+    """The ``replay_buffer.*`` keys (each with its default, rule and help on the recipe page)."""
+
     size: int | None = key(
         None,
         "capacity; null: min(1e6, `collector.total_frames`), fixed when the run starts",
@@ -200,6 +208,8 @@ class ReplayBufferConfig:
 
 @dataclass
 class WorldModelConfig:
+    """The ``world_model.*`` keys (each with its default, rule and help on the recipe page)."""
+
     num_models: int = key(4, "ensemble size N", POSITIVE_INT)
     size: str = key(
         "cpu",
@@ -252,6 +262,8 @@ class WorldModelConfig:
 
 @dataclass
 class NetworkConfig:
+    """The ``network.*`` keys (each with its default, rule and help on the recipe page)."""
+
     actor_cells: int = key(64, "actor hidden width", POSITIVE_INT)
     critic_cells: int = key(64, "critic hidden width", POSITIVE_INT)
     num_layers: int = key(4, "FC layers of actor and critic, output layer included", POSITIVE_INT)
@@ -264,6 +276,8 @@ class NetworkConfig:
 
 @dataclass
 class EstimatorConfig:
+    """The ``estimator.*`` keys (each with its default, rule and help on the recipe page)."""
+
     horizon: int = key(3, "H_max, the longest rollout (the fixed H of `mve`)", NON_NEGATIVE_INT)
     alpha: float = key(
         1.5, "`rave`: the alpha of eq. 12; `rave_constant`: the constant", NON_NEGATIVE
@@ -273,6 +287,8 @@ class EstimatorConfig:
 
 @dataclass
 class OptimConfig:
+    """The ``optim.*`` keys (each with its default, rule and help on the recipe page)."""
+
     lr_actor: float = key(3.0e-4, "actor learning rate", POSITIVE)
     lr_critic: float = key(3.0e-4, "critic learning rate", POSITIVE)
     lr_alpha: float = key(3.0e-4, "`sac`: temperature learning rate", POSITIVE)
@@ -283,6 +299,8 @@ class OptimConfig:
 
 @dataclass
 class CompileConfig:
+    """The ``compile.*`` keys (each with its default, rule and help on the recipe page)."""
+
     enabled: bool = key(
         False,
         (
@@ -303,6 +321,8 @@ class CompileConfig:
 
 @dataclass
 class TD3Config:
+    """The ``td3.*`` keys (each with its default, rule and help on the recipe page)."""
+
     policy_noise: float = key(0.2, "`td3`: target policy smoothing noise", NON_NEGATIVE)
     noise_clip: float = key(0.5, "`td3`: its clip", NON_NEGATIVE)
     policy_delay: int = key(2, "`td3`: critic steps per actor step", POSITIVE_INT)
@@ -310,6 +330,8 @@ class TD3Config:
 
 @dataclass
 class PPOConfig:
+    """The ``ppo.*`` keys (each with its default, rule and help on the recipe page)."""
+
     rollout_frames: int = key(
         2048, "`ppo`: frames collected per batch (one PPO iteration)", POSITIVE_INT
     )
@@ -340,6 +362,8 @@ class PPOConfig:
 
 @dataclass
 class ExplorationConfig:
+    """The ``exploration.*`` keys (each with its default, rule and help on the recipe page)."""
+
     sigma: float = key(
         0.1,
         ("Gaussian action noise std, in units of half the action range (all but `sac` and `ppo`)"),
@@ -354,6 +378,8 @@ class ExplorationConfig:
 
 @dataclass
 class EvalConfig:
+    """The ``eval.*`` keys (each with its default, rule and help on the recipe page)."""
+
     interval: int = key(
         5_000, "frames between deterministic evaluations (one more at the end)", POSITIVE_INT
     )
@@ -362,6 +388,8 @@ class EvalConfig:
 
 @dataclass
 class RewardConfig:
+    """The ``reward.*`` keys (each with its default, rule and help on the recipe page)."""
+
     weights: dict[str, float] | None = key(
         None,
         (
@@ -399,6 +427,8 @@ class RewardConfig:
 
 @dataclass
 class CurriculumConfig:
+    """The ``curriculum.*`` keys (each with its default, rule and help on the recipe page)."""
+
     kwarg: str | None = key(
         None,
         (
@@ -420,11 +450,15 @@ class CurriculumConfig:
 
 @dataclass
 class CheckpointConfig:
+    """The ``checkpoint.*`` keys (each with its default, rule and help on the recipe page)."""
+
     interval: int = key(5_000, "frames between checkpoints (one more at the end)", POSITIVE_INT)
 
 
 @dataclass
 class LoggerConfig:
+    """The ``logger.*`` keys (each with its default, rule and help on the recipe page)."""
+
     backend: str = key(
         "csv",
         (
