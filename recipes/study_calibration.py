@@ -45,8 +45,8 @@ def calibration(study, results: Path, out: Path) -> list[str]:
                 continue
             ends = [at_frame(runs, "eval/return", study.frames) if runs else None
                     for runs in (ours, refs)]  # fmt: skip
-            cells = [f"{v.mean():.0f} ± {v.std(ddof=1):.0f} ({len(v)})" if v is not None and
-                     len(v) > 1 else "n/a" for v in ends]  # fmt: skip
+            cells = ["n/a" if v is None or not len(v) else f"{v[0]:.0f} (1)" if len(v) == 1
+                     else f"{v.mean():.0f} ± {v.std(ddof=1):.0f} ({len(v)})" for v in ends]  # fmt: skip
             pub = f"{published[0]} ± {published[1]}" if published else "n/a"
             verdict = "n/a"
             if algorithm in CALIBRATED and published and ends[0] is not None:
@@ -56,8 +56,10 @@ def calibration(study, results: Path, out: Path) -> list[str]:
                     floor = ends[1].mean() - ends[1].std(ddof=1)
                     checks.append(f"{'within' if ends[0].mean() >= floor else 'below'} the "
                                   f"reference's spread (>= {floor:.0f})")  # fmt: skip
-                else:  # half the bar: no verdict until the reference has run
-                    checks.append("reference not run yet")
+                else:  # half the bar: no verdict until the reference has a spread
+                    done = 0 if ends[1] is None else len(ends[1])
+                    checks.append("reference not run yet" if not done else
+                                  "reference: 1 seed so far, no spread yet")  # fmt: skip
                 verdict = "; ".join(checks)
             rows.append(f"| {entry.label} | {algorithm} | {cells[0]} | {cells[1]} | {pub} | "
                         f"{verdict} |")  # fmt: skip
