@@ -461,6 +461,25 @@ class TestCheckpoints:
         assert not old.exists()
         assert [s for s, _ in read_scalar(new, "eval/return", "ddpg")] == [200, 400]
 
+    def test_a_grid_resumes_an_interrupted_cell_started_with_a_preset(self, tmp_path):
+        """The probe: a study cell (its overrides name ``preset=``) interrupted after a
+        checkpoint was restarted with its overrides and ``resume=``, which refuses a preset:
+        the cell failed at every later start. It must resume from its saved config."""
+        from torchrl_rave.recipe.runs import Cell, cell_arguments, check_cells, launch_grid
+
+        run_dir = tmp_path / "cell"
+        overrides = ("preset=cpu", "algorithm=ddpg", *TINY[1:])
+        first = Cell(run_dir, 200, overrides)  # as if stopped at 200 of 400 frames
+        assert launch_grid(RECIPES / "rave_mujoco.py", [first]) == {first: 0}
+        cell = Cell(run_dir, 400, overrides)
+        assert not cell.finished() and cell.checkpoint_frame() == 200
+        assert "preset=cpu" not in cell_arguments(cell)
+        check_cells([cell], RECIPES)  # the saved config, read as resume= reads it: no problem
+        assert launch_grid(RECIPES / "rave_mujoco.py", [cell]) == {cell: 0}
+        assert cell.finished()
+        assert [s for s, _ in read_scalar(run_dir, "eval/return", "ddpg")] == [200, 400]
+        assert [s["from_frame"] for s in cell.starts()] == [0, 200]
+
     def test_resume_refuses_a_different_algorithm(self, tmp_path):
         overrides = [*TINY, "algorithm=ddpg", "collector.total_frames=200"]
         rave_mujoco.train(make_cfg(*overrides), str(tmp_path))

@@ -25,12 +25,14 @@ from torchrl_rave.recipe.checkpoint import (
     DamagedCheckpoint,
     RunCheckpoint,
     check_run_directory,
+    config_for_resume,
     newest_frame,
 )
 
 __all__ = [
     "Cell",
     "GridStopped",
+    "cell_arguments",
     "check_cells",
     "curves",
     "launch_grid",
@@ -285,8 +287,9 @@ STARTS = "starts.jsonl"  # in a run directory, one line per start of its run
 def check_cells(cells: Sequence[Cell], config_dir: str | Path, config_name: str = "config") -> None:
     """Checks the config every unfinished cell's run will start with, before any starts.
 
-    Each cell's overrides and frame budget, as :func:`launch_grid` passes them, are composed
-    with the recipe's ``config_dir/config_name`` and checked by
+    Each cell's command line, as :func:`launch_grid` passes it (:func:`cell_arguments`), is
+    composed with the recipe's ``config_dir/config_name`` (an interrupted cell's saved config
+    is read as ``resume=`` reads it) and checked by
     :func:`~torchrl_rave.recipe.config.check_config`. A mistake in a grid (an env id, an
     algorithm, an extra key) would otherwise fail each of its runs in turn, each with its
     own log; here every problem is raised at once, as one
@@ -311,10 +314,14 @@ def check_cells(cells: Sequence[Cell], config_dir: str | Path, config_name: str 
         for cell in cells:
             if cell.finished():
                 continue
-            overrides = [*cell.overrides, f"collector.total_frames={cell.frames}"]
+            # as the run will start: hydra's own keys are not the config's
+            overrides = [a for a in cell_arguments(cell) if not a.startswith("hydra.")]
             try:
-                cfg = compose(config_name, overrides=overrides)
-                cfg = with_algorithm_preset(cfg, preset_of(overrides), override_keys(overrides))
+                if cell.checkpoint_frame() is not None:  # the saved config, as resume= reads it
+                    cfg = config_for_resume(cell.run_dir, overrides, compose(config_name))
+                else:
+                    cfg = compose(config_name, overrides=overrides)
+                    cfg = with_algorithm_preset(cfg, preset_of(overrides), override_keys(overrides))
                 check_config(cfg)
                 kwargs = cfg.env.kwargs
                 kwargs = None if kwargs is None else OmegaConf.to_container(kwargs)
@@ -351,17 +358,25 @@ def _env_problems(cfg) -> list[str]:
     return []
 
 
-def _start_cell(script: Path, cell: Cell, record: dict) -> subprocess.Popen:
-    args = [
-        *cell.overrides,
+def cell_arguments(cell: Cell) -> list[str]:
+    """The recipe's command line for ``cell``: its overrides and frame budget, or, for an
+    interrupted cell (one with a checkpoint), ``resume=`` its run directory and the budget.
+    A resumed run keeps the config it was saved with, and refuses a ``preset=`` or the
+    other keys it would ignore (:func:`~torchrl_rave.recipe.checkpoint.config_for_resume`);
+    the cell's overrides are in that config already."""
+    common = [
         f"collector.total_frames={cell.frames}",
         "logger.progress_bar=false",
         f"hydra.run.dir={cell.run_dir}",
     ]
-    frame = cell.checkpoint_frame()
-    if frame is not None:
-        args.append(f"resume={cell.run_dir}")  # an interrupted cell continues
-    frame = frame or 0
+    if cell.checkpoint_frame() is not None:
+        return [f"resume={cell.run_dir}", *common]
+    return [*cell.overrides, *common]
+
+
+def _start_cell(script: Path, cell: Cell, record: dict) -> subprocess.Popen:
+    args = cell_arguments(cell)
+    frame = cell.checkpoint_frame() or 0
     cell.run_dir.mkdir(parents=True, exist_ok=True)
     when = time.strftime("%Y-%m-%d %H:%M:%S %Z")
     with open(cell.run_dir / STARTS, "a") as f:
