@@ -51,6 +51,12 @@ from torchrl_rave.objectives import (
     WorldModelEnsembleLoss,
     make_value_expansion_estimator,
 )
+from torchrl_rave.recipe.checkpoint import (
+    DamagedCheckpoint,
+    RunCheckpoint,
+    check_run_directory,
+    missing_checkpoint,
+)
 from torchrl_rave.recipe.config import (
     ALGORITHMS,
     Algorithm,
@@ -60,6 +66,7 @@ from torchrl_rave.recipe.config import (
     resolve_config,
     world_model_sizes,
 )
+from torchrl_rave.recipe.trust import check_plain_data, check_trusted
 from torchrl_rave.trainers import WorldModelTrainer
 from torchrl_rave.transforms import RewardTermsReader
 
@@ -172,14 +179,6 @@ def load_agent(
     a module (``env.name="module:EnvId"``) or open a file by name (a string in
     ``env.kwargs``) raises :class:`~torchrl_rave.recipe.trust.UntrustedRunConfig` unless
     ``trust=True`` says that the run directory is trusted (:mod:`torchrl_rave.recipe.trust`)."""
-    from torchrl_rave.recipe.checkpoint import (
-        DamagedCheckpoint,
-        RunCheckpoint,
-        check_run_directory,
-        missing_checkpoint,
-    )
-    from torchrl_rave.recipe.trust import check_plain_data, check_trusted
-
     check_run_directory(run_dir)
     checkpoint = RunCheckpoint(run_dir)
     path = checkpoint.latest()  # the newest undamaged one
@@ -228,8 +227,6 @@ def _check_saved_sizes(cfg: DictConfig, checkpoint, path: Path) -> None:
     larger than the run trained (the sizes then fail to load anyway, after the memory
     was taken). Raises :class:`DamagedCheckpoint` naming the key."""
     from torchrl.checkpoint import Checkpoint
-
-    from torchrl_rave.recipe.checkpoint import DamagedCheckpoint
 
     skip = ("config", "counters", "logger", "episode", "rng", "replay_buffer",
             "world_model_trainer")  # fmt: skip

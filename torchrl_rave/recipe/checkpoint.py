@@ -19,6 +19,7 @@ from torchrl.checkpoint import Checkpoint, CheckpointAdapter, GlobalRNGState
 from torchrl.data import ReplayBuffer
 
 from torchrl_rave.recipe.config import ConfigError
+from torchrl_rave.recipe.trust import check_plain_data, check_trusted
 
 __all__ = [
     "CheckpointWriteError",
@@ -350,10 +351,14 @@ class RunCheckpoint:
             expected_bytes = expected_bytes(max(os.statvfs(self.root).f_frsize, 4096))
         self._check_space(int(expected_bytes), "a checkpoint of this run")
 
+    def path(self, frames: int) -> Path:
+        """Where checkpoint ``frames`` is (or would be written)."""
+        return self.root / f"{PREFIX}{int(frames):012d}"
+
     def save(self, frames: int, **components) -> Path:
         """Writes checkpoint ``frames``; raises :class:`CheckpointWriteError` (naming the
         directory and the cause) when it cannot, leaving the previous checkpoints intact."""
-        destination = self.root / f"{PREFIX}{int(frames):012d}"
+        destination = self.path(frames)
         stage = self.root / f".{destination.name}.writing-{uuid.uuid4().hex}"
         try:
             self.root.mkdir(parents=True, exist_ok=True)
@@ -626,8 +631,6 @@ def saved_config(
     directory, and an interpolation in the saved values (except at the keys in
     ``given``, which the caller sets itself), are refused
     (:func:`~torchrl_rave.recipe.trust.check_plain_data`)."""
-    from torchrl_rave.recipe.trust import check_plain_data
-
     check_run_directory(run_dir)
     if _group_seeds(Path(run_dir)) is not None:
         data = read_group_file(run_dir)
@@ -649,8 +652,6 @@ def config_for_resume(
     preset would silently change nothing (name the keys to change instead). A saved value
     that would import a module, join a Ray cluster or open a file by name is refused unless
     ``overrides`` set its key (:mod:`torchrl_rave.recipe.trust`)."""
-    from torchrl_rave.recipe.trust import check_trusted
-
     given = {o.split("=", 1)[0].lstrip("+~") for o in overrides}
     saved = saved_config(run_dir, defaults, given)
     check_trusted(

@@ -17,6 +17,7 @@ from torchrl.collectors import Collector, MultiSyncCollector
 from torchrl_rave.recipe.agent import make_actor, make_env
 from torchrl_rave.recipe.config import ALGORITHMS, check_ray_fits
 from torchrl_rave.recipe.episode import EpisodeWorkerCollector
+from torchrl_rave.recipe.trust import reach_ray_address
 
 
 def make_collector(cfg: DictConfig, env, policy, device, frames_done: int = 0):
@@ -141,8 +142,6 @@ def make_ray_collector(cfg: DictConfig, common: dict):
     import ray
     import ray.cloudpickle
     from torchrl.collectors.distributed import RayCollector
-
-    from torchrl_rave.recipe.trust import reach_ray_address
 
     # the env and policy factories live in this recipe module, which Ray workers cannot
     # import by name: pickle them by value

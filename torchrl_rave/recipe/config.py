@@ -23,16 +23,19 @@ from omegaconf.errors import OmegaConfBaseException
 from torchrl_rave.envs.families import BULLET_IDS, OSIM_IDS, import_env_family
 from torchrl_rave.modules.world_model import WORLD_MODEL_SIZES
 from torchrl_rave.recipe import memory
-from torchrl_rave.recipe.schema import RecipeConfig, schema_fields
+from torchrl_rave.recipe.metrics import METRICS
+from torchrl_rave.recipe.schema import PRESETS, RecipeConfig, default_config, schema_fields
 
 __all__ = [
     "ALGORITHMS",
     "FIXED_ON_RESUME",
     "Algorithm",
     "ConfigError",
+    "GROUP_ALGORITHMS",
     "NoUpdatesWarning",
     "check_command_line",
     "check_config",
+    "check_group",
     "check_resumable",
     "num_critics",
     "replay_buffer_size",
@@ -154,6 +157,32 @@ def _unknown_key(key: str) -> str:
     return f"config key {key} is not a key of the recipe{hint} (--help lists every key)"
 
 
+#: the algorithms a seed group trains (ppo runs one seed per process)
+GROUP_ALGORITHMS = ("ddpg", "mve", "steve", "rave", "rave_constant", "td3", "sac")
+
+
+def check_group(cfg: DictConfig) -> list[str]:
+    """The problems of ``seeds=`` with the rest of ``cfg`` (empty when it can run)."""
+    seeds = list(cfg.seeds)
+    problems = []
+    if not seeds or len(set(seeds)) != len(seeds):
+        problems.append(f"config key seeds={seeds}: expected a list of distinct seeds")
+    if cfg.algorithm not in GROUP_ALGORITHMS:
+        problems.append(
+            f"config key seeds={seeds}: a seed group trains {', '.join(GROUP_ALGORITHMS)}; "
+            f"algorithm={cfg.algorithm} runs one seed per process (leave seeds unset)"
+        )
+    if cfg.get("curriculum") is not None and cfg.curriculum.kwarg is not None:
+        problems.append("config key seeds: a seed group does not run a curriculum")
+    reward = cfg.get("reward")
+    if reward is not None and (reward.weights is not None or reward.delayed is not None):
+        problems.append("config key seeds: a seed group does not relabel reward terms")
+    if cfg.compile.enabled:
+        problems.append("config key seeds: a seed group's update is not compiled; set "
+                        "compile.enabled=false")  # fmt: skip
+    return problems
+
+
 def check_config(cfg: DictConfig) -> Algorithm:
     """Rejects bad settings before anything is built; returns the selected algorithm.
 
@@ -221,8 +250,6 @@ def check_config(cfg: DictConfig) -> Algorithm:
     _check_reward(cfg, bad, problems)
     _check_curriculum(cfg, bad, problems)
     if "seeds" not in bad and cfg.get("seeds") is not None:
-        from torchrl_rave.recipe.group import check_group
-
         problems += check_group(cfg)
     if problems:
         raise ConfigError(problems)
@@ -232,8 +259,6 @@ def check_config(cfg: DictConfig) -> Algorithm:
 def _check_reward(cfg: DictConfig, bad: set, problems: list[str]) -> None:
     """The ``reward`` keys: weights are numbers; the delayed term has a start condition
     (frames, or a metric with its threshold); only off-policy algorithms relabel."""
-    from torchrl_rave.recipe.metrics import METRICS
-
     r = cfg.get("reward")
     if r is None or bad & {k for k in _SCHEMA if k.startswith("reward.")}:
         return
@@ -273,8 +298,6 @@ def _check_reward(cfg: DictConfig, bad: set, problems: list[str]) -> None:
 def _check_curriculum(cfg: DictConfig, bad: set, problems: list[str]) -> None:
     """The ``curriculum`` keys: stages with one threshold between each two, and an
     evaluation metric."""
-    from torchrl_rave.recipe.metrics import METRICS
-
     c = cfg.get("curriculum")
     if c is None or bad & {k for k in _SCHEMA if k.startswith("curriculum.")}:
         return
@@ -322,8 +345,6 @@ def check_command_line(overrides: list[str]) -> None:
     in full once merged with the saved one."""
     from hydra.core.override_parser.overrides_parser import OverridesParser
     from hydra.errors import HydraException
-
-    from torchrl_rave.recipe.schema import PRESETS, default_config
 
     try:
         parsed = OverridesParser.create().parse_overrides(overrides)

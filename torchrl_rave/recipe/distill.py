@@ -26,6 +26,7 @@ from torchrl_rave.recipe.checkpoint import RunCheckpoint, missing_checkpoint, sa
 from torchrl_rave.recipe.curriculum import make_curriculum, stage_config
 from torchrl_rave.recipe.episode import EpisodeCheckpoint
 from torchrl_rave.recipe.schema import defaults
+from torchrl_rave.recipe.trust import check_trusted
 
 __all__ = ["collect_pairs", "distill_actor", "distill_run"]
 
@@ -133,8 +134,6 @@ def distill_run(
     target are one value. Returns, and writes to ``out_dir/distill.json``, the source, the
     number of pairs, the env keywords they were collected with, the target slice, the
     noise's range and the fit's first and last losses."""
-    from torchrl_rave.recipe.trust import check_trusted
-
     problems = [f"{name}={value}: expected an integer >= 1"
                 for name, value in (("frames", frames), ("steps", steps)) if value < 1]  # fmt: skip
     infinite = [f"{name}={value}: expected a finite number (the noise is uniform over "

@@ -21,92 +21,39 @@ kernels.
 
 from __future__ import annotations
 
-import contextlib
 import json
 import os
-import time
 import warnings
-from collections import defaultdict
-from dataclasses import dataclass, field
 from pathlib import Path
 
 import torch
 from omegaconf import DictConfig, OmegaConf
 from tensordict import TensorDict, TensorDictBase
-from torchrl.checkpoint import GlobalRNGState
 from torchrl.data import RandomSampler, TensorDictReplayBuffer, TensorStorage
 
-from torchrl_rave.recipe.agent import (
-    Agent,
-    make_agent,
-    make_env,
-    make_replay_buffer,
-    make_seed_group,
-    q_at_points,
-)
+from torchrl_rave.recipe.agent import Agent, make_seed_group
 from torchrl_rave.recipe.checkpoint import (
     PREFIX,
     DamagedCheckpoint,
     DamagedCheckpointWarning,
-    RunCheckpoint,
     read_group_file,
 )
-from torchrl_rave.recipe.collect import (
-    NonFiniteEnvOutput,
-    StopRequest,
-    check_finite,
-    guarded_batches,
-    make_collector,
-    push_or_stop,
-    shutdown_on_error,
-    stop_run,
-)
-from torchrl_rave.recipe.config import (
-    ConfigError,
-    apply_process_settings,
-    check_resumable,
-    learning_start,
-    replay_buffer_size,
-)
-from torchrl_rave.recipe.episode import EpisodeCheckpoint, resume_collecting
-from torchrl_rave.recipe.evaluate import evaluate_agent, make_logger
-from torchrl_rave.recipe.loop import batch_metrics, nothing_to_train, record_update
-from torchrl_rave.trainers import SeedStreams
+from torchrl_rave.recipe.config import GROUP_ALGORITHMS, ConfigError, check_group
 
 __all__ = [
     "GROUP_ALGORITHMS",
     "GROUP_FILE",
+    "GroupLearner",
     "GroupSampler",
     "check_group",
+    "common_checkpoint",
     "group_config",
-    "train_group",
+    "saved_group_config",
+    "seed_config",
+    "write_group_file",
 ]
 
-#: the algorithms a seed group trains (ppo runs one seed per process)
-GROUP_ALGORITHMS = ("ddpg", "mve", "steve", "rave", "rave_constant", "td3", "sac")
 GROUP_FILE = "group.json"
-
-
-def check_group(cfg: DictConfig) -> list[str]:
-    """The problems of ``seeds=`` with the rest of ``cfg`` (empty when it can run)."""
-    seeds = list(cfg.seeds)
-    problems = []
-    if not seeds or len(set(seeds)) != len(seeds):
-        problems.append(f"config key seeds={seeds}: expected a list of distinct seeds")
-    if cfg.algorithm not in GROUP_ALGORITHMS:
-        problems.append(
-            f"config key seeds={seeds}: a seed group trains {', '.join(GROUP_ALGORITHMS)}; "
-            f"algorithm={cfg.algorithm} runs one seed per process (leave seeds unset)"
-        )
-    if cfg.get("curriculum") is not None and cfg.curriculum.kwarg is not None:
-        problems.append("config key seeds: a seed group does not run a curriculum")
-    reward = cfg.get("reward")
-    if reward is not None and (reward.weights is not None or reward.delayed is not None):
-        problems.append("config key seeds: a seed group does not relabel reward terms")
-    if cfg.compile.enabled:
-        problems.append("config key seeds: a seed group's update is not compiled; set "
-                        "compile.enabled=false")  # fmt: skip
-    return problems
 
 
 def group_config(run_dir: str | Path) -> dict:
@@ -114,31 +61,34 @@ def group_config(run_dir: str | Path) -> dict:
     return read_group_file(run_dir)
 
 
-def _write_group_file(run_dir: Path, cfg: DictConfig) -> None:
-    tmp = run_dir / f".{GROUP_FILE}.tmp"
-    tmp.write_text(json.dumps({"config": OmegaConf.to_container(cfg, resolve=True)}, indent=1))
-    os.replace(tmp, run_dir / GROUP_FILE)
+def saved_group_config(root: Path, cfg: DictConfig) -> DictConfig:
+    """The config the group at ``root`` was saved with, for ``resume=root`` with ``cfg``:
+    refused when ``root`` holds one run, when ``cfg.seeds`` differ from the group's, or
+    when a seed's directory is missing."""
+    if not (root / GROUP_FILE).is_file():
+        raise ConfigError([
+            f"resume={str(root)!r} holds one run, not a seed group ({GROUP_FILE} is "
+            "missing): resume it without seeds=, or start a new group elsewhere"
+        ])  # fmt: skip
+    saved = OmegaConf.create(group_config(root))
+    if list(saved.seeds) != list(cfg.seeds):
+        raise ConfigError([
+            f"resume={str(root)!r}: config key seeds is {list(cfg.seeds)} but the group "
+            f"was started with {list(saved.seeds)}; it cannot change on resume (train "
+            "other seeds as a new group)"
+        ])  # fmt: skip
+    missing = [s for s in cfg.seeds if not (root / f"seed{s}").is_dir()]
+    if missing:
+        raise ConfigError([
+            f"resume={str(root)!r}: {GROUP_FILE} names seed(s) {missing} that have no "
+            f"seed<s>/ directory under it; the file was edited, or a seed's directory "
+            "removed: restore it from a copy of the run directory"
+        ])  # fmt: skip
+    return saved
 
 
-@dataclass
-class _Seed:
-    """One seed's run: its config, directory and everything it owns."""
-
-    seed: int
-    cfg: DictConfig
-    dir: Path
-    env: object
-    eval_env: object
-    agent: Agent
-    rb: object
-    checkpoint: RunCheckpoint
-    logger: object = None
-    collector: object = None
-    episode: EpisodeCheckpoint = field(default_factory=EpisodeCheckpoint)
-    rng_at_load: dict | None = None  # its stream as its checkpoint saved it
-
-
-def _seed_config(cfg: DictConfig, seed: int) -> DictConfig:
+def seed_config(cfg: DictConfig, seed: int) -> DictConfig:
+    """A group's ``cfg`` as seed ``seed``'s own run: its ``env.seed``, no ``seeds``."""
     one = cfg.copy()
     one.env.seed = seed
     one.seeds = None
@@ -146,8 +96,16 @@ def _seed_config(cfg: DictConfig, seed: int) -> DictConfig:
     return one
 
 
-def _common_checkpoint(seeds: list[_Seed]) -> int:
-    """The newest frame count every seed has an undamaged checkpoint of. Damaged
+def write_group_file(run_dir: Path, cfg: DictConfig) -> None:
+    """Saves the group's ``cfg`` as ``<run_dir>/group.json`` (written whole, then renamed)."""
+    tmp = run_dir / f".{GROUP_FILE}.tmp"
+    tmp.write_text(json.dumps({"config": OmegaConf.to_container(cfg, resolve=True)}, indent=1))
+    os.replace(tmp, run_dir / GROUP_FILE)
+
+
+def common_checkpoint(seeds) -> int:
+    """The newest frame count every seed (``.checkpoint``, ``.dir``) has an undamaged
+    checkpoint of. Damaged
     checkpoints newer than it are set aside (``checkpoints/damaged/``) with a warning that
     names them, as a single run's resume does; with none in common, the error names each
     damaged one and why."""
@@ -183,222 +141,60 @@ def _common_checkpoint(seeds: list[_Seed]) -> int:
     return frame
 
 
-def train_group(cfg: DictConfig, run_dir: str) -> dict[str, float]:
-    """Trains (or, with ``cfg.resume`` set, continues) the runs of ``cfg.seeds`` as one
-    group into ``run_dir``; returns each seed's final evaluation metrics under
-    ``seed<s>/<metric>`` and their mean over seeds under ``<metric>``."""
-    problems = check_group(cfg)
-    if problems:
-        raise ConfigError(problems)
-    cfg = cfg.copy()
-    root = Path(cfg.resume or run_dir)
-    if cfg.resume:
-        if not (root / GROUP_FILE).is_file():
-            raise ConfigError([
-                f"resume={str(root)!r} holds one run, not a seed group ({GROUP_FILE} is "
-                "missing): resume it without seeds=, or start a new group elsewhere"
-            ])  # fmt: skip
-        saved = OmegaConf.create(group_config(root))
-        if list(saved.seeds) != list(cfg.seeds):
-            raise ConfigError([
-                f"resume={str(root)!r}: config key seeds is {list(cfg.seeds)} but the group "
-                f"was started with {list(saved.seeds)}; it cannot change on resume (train "
-                "other seeds as a new group)"
-            ])  # fmt: skip
-        missing = [s for s in cfg.seeds if not (root / f"seed{s}").is_dir()]
-        if missing:
-            raise ConfigError([
-                f"resume={str(root)!r}: {GROUP_FILE} names seed(s) {missing} that have no "
-                f"seed<s>/ directory under it; the file was edited, or a seed's directory "
-                "removed: restore it from a copy of the run directory"
-            ])  # fmt: skip
-        check_resumable(cfg, saved)
-        cfg.replay_buffer.size = saved.replay_buffer.size
-    else:
-        cfg.replay_buffer.size = replay_buffer_size(cfg)
-    device = torch.device(cfg.collector.device or ("cuda" if torch.cuda.is_available() else "cpu"))
-    apply_process_settings(cfg)
+class GroupLearner:
+    """A seed group's learner (see :mod:`torchrl_rave.recipe.update`): every update is one
+    call of the :class:`~torchrl_rave.trainers.SeedGroup` on each seed's own sample. The
+    group's optimisers hold every seed's moments; each seed's world-model trainer keeps its
+    schedule (:meth:`~torchrl_rave.trainers.WorldModelTrainer.schedule`) and, at each
+    checkpoint (:meth:`before_save`), its seed's slice of the moments, so that a seed's
+    checkpoint is an ordinary run's."""
 
-    record = cfg.collector.backend == "direct"  # in-process envs keep their episodes
-    seeds: list[_Seed] = []
-    rng = SeedStreams(len(cfg.seeds), device)
-    for i, seed in enumerate(cfg.seeds):
-        one = _seed_config(cfg, int(seed))
-        torch.manual_seed(one.env.seed)  # the single run's initialisation, seed by seed
-        env = make_env(one, device, record_episode=record)
-        eval_env = make_env(one, device)
-        agent = make_agent(one, env, device)
-        seed_dir = root / f"seed{seed}"
-        seed_dir.mkdir(parents=True, exist_ok=True)
-        seeds.append(_Seed(int(seed), one, seed_dir, env, eval_env, agent,
-                           make_replay_buffer(one, device), RunCheckpoint(seed_dir)))  # fmt: skip
-        rng.capture(i)  # from here on, seed i draws from its own stream
-    transition = seeds[0].env.fake_tensordict()
-    for s in seeds:
-        s.checkpoint.preflight(
-            lambda block, a=s.agent: a.checkpoint_bytes(cfg.replay_buffer.size, transition, block)
-        )
-    counters = {"frames": 0, "updates": 0, "update_budget": 0.0, "curriculum_stage": 0}
-    counters.update(next_eval=cfg.eval.interval, next_checkpoint=cfg.checkpoint.interval)
-    logger_states = [{} for _ in seeds]
-    if cfg.resume:
-        frame = _common_checkpoint(seeds)
-        for i, s in enumerate(seeds):
-            own = dict(counters)
-            path = s.checkpoint.root / f"{PREFIX}{frame:012d}"
-            with rng.use(i):  # restores seed i's stream as its checkpoint saved it
-                s.checkpoint.load(
-                    path=path, counters=own, replay_buffer=s.rb, logger=logger_states[i],
-                    **s.agent.state_components(),
-                )  # fmt: skip
-                s.rng_at_load = GlobalRNGState().state_dict()
-            s.episode.load_state_dict(s.checkpoint.read_optional("episode", path))
-            if i == 0:
-                counters.update(own)
-    for s, state in zip(seeds, logger_states, strict=True):
-        s.logger = make_logger(s.cfg, str(s.dir), state or None)
-    group = make_seed_group(cfg, [s.agent for s in seeds], streams=rng)
-    learner_optimizers = [_optimizers(s.agent) for s in seeds]
-    group.import_optimizer_states(learner_optimizers)
-    for i, s in enumerate(seeds):
-        with rng.use(i):
-            s.env.set_seed(s.seed + counters["frames"])
+    def __init__(self, cfg: DictConfig, agents: list[Agent], rbs: list, streams) -> None:
+        self.group = make_seed_group(cfg, agents, streams=streams)
+        self.num_seeds = len(agents)
+        self.policy_delay = cfg.td3.policy_delay if cfg.algorithm == "td3" else 1
+        self.rbs = rbs
+        self.trainers = [a.world_model_trainer for a in agents if a.world_model_trainer]
+        self._optimizers = [_optimizers(a) for a in agents]
+        self.group.import_optimizer_states(self._optimizers)
+        self._sampler = None
 
-    def save_checkpoint():
-        group.export_optimizer_states(learner_optimizers)
-        _write_group_file(root, cfg)
-        paths = []
-        for i, s in enumerate(seeds):
-            with rng.use(i):  # the checkpoint's random state is seed i's stream
-                paths.append(s.checkpoint.save(
-                    counters["frames"],
-                    config=OmegaConf.to_container(s.cfg, resolve=True),
-                    counters=dict(counters),
-                    replay_buffer=s.rb,
-                    logger={} if s.logger is None else s.logger.state_dict(),
-                    episode=s.episode,
-                    **s.agent.state_components(),
-                ))  # fmt: skip
-        return paths
+    def before_save(self) -> None:
+        """Each seed's slice of the group's optimiser states into its learner's own."""
+        self.group.export_optimizer_states(self._optimizers)
 
-    def save_after_failure():
-        # mid-batch (a hung or failed collector) or a dropped batch (NaN): the episodes
-        # no longer match the saved frames; a resumed group starts new ones
-        for s in seeds:
-            s.episode.attach(None, None)
-        return save_checkpoint()
+    def _sample(self) -> TensorDictBase:
+        if self._sampler is None or self._sampler.keys is None:  # until the buffers fill
+            self._sampler = GroupSampler(self.rbs, self.group)
+        return self._sampler()
 
-    total = cfg.collector.total_frames
-    last = [{} for _ in seeds]
-    start, frames_at_start = time.perf_counter(), counters["frames"]
-    with StopRequest() as stop, contextlib.ExitStack() as on_error:
-        for s in seeds:  # on an error, no seed's workers outlive the run
-            on_error.enter_context(shutdown_on_error(lambda s=s: s.collector))
-        # no collectors for a group resumed at or past its total (a collector of no frames
-        # would fail), as the single run's loop does not start then
-        collecting = seeds if counters["frames"] < total else []
-        for i, s in enumerate(collecting):
-            with rng.use(i):
-                s.collector = make_collector(
-                    s.cfg, s.env, s.agent.policy, device, counters["frames"]
-                )
-                s.episode.attach(s.env, s.collector)
-                if s.rng_at_load is not None:  # a resumed seed continues its episode
-                    resume_collecting(s.episode, s.env, s.collector, s.seed + counters["frames"],
-                                      s.rng_at_load)  # fmt: skip
-                    s.rng_at_load = None
-        iterators = [
-            guarded_batches(s.collector, s.cfg, save_after_failure, lambda: counters["frames"],
-                            str(s.dir))
-            for s in collecting
-        ]  # fmt: skip
-        t_collect = time.perf_counter()
-        for batches in _lockstep(iterators, rng):
-            collect_s = time.perf_counter() - t_collect
-            data = [b.reshape(-1) for b in batches]
-            for s, d in zip(seeds, data, strict=True):
-                bad = check_finite(d)
-                if bad is not None:
-                    where = stop_run(s.collector, save_after_failure)
-                    raise NonFiniteEnvOutput(
-                        f"{cfg.env.name} (seed {s.seed}) produced {bad} within frames "
-                        f"{counters['frames']}-{counters['frames'] + d.numel()}; {where}: fix "
-                        f"the env and rerun with resume={root}"
-                    )
-            counters["frames"] += data[0].numel()
-            t_update = time.perf_counter()
-            for s, d in zip(seeds, data, strict=True):
-                s.rb.extend(d)
-                if s.agent.world_model_trainer is not None:
-                    s.agent.world_model_trainer.extend(d)
-            acc = update_group_on_batch(cfg, seeds, group, counters, data[0].numel())
-            update_s = time.perf_counter() - t_update
-            for s in seeds:
-                push_or_stop(s.collector, s.agent.policy, s.cfg, save_after_failure,
-                             counters["frames"], str(s.dir))  # fmt: skip
-            frames_now = counters["frames"]
-            evaluate = frames_now >= counters["next_eval"] or frames_now >= total
-            fps = (frames_now - frames_at_start) / (time.perf_counter() - start)
-            for i, (s, d) in enumerate(zip(seeds, data, strict=True)):
-                metrics = batch_metrics(acc[i], d, collect_s, update_s, fps)
-                if evaluate:
-                    t_eval = time.perf_counter()
-                    with rng.use(i):
-                        s.eval_env.set_seed(s.seed + 1_000_003 + frames_now)
-                        last[i] = evaluate_agent(s.cfg, s.eval_env, s.agent)
-                    metrics.update(last[i])
-                    metrics["time/eval_s"] = time.perf_counter() - t_eval
-                metrics.update(q_at_points(s.agent.loss, cfg.logger.q_points, cfg.env.reward_scale))
-                if s.logger is not None:
-                    for key, value in metrics.items():
-                        s.logger.log_scalar(key, value, step=frames_now)
-            if evaluate:
-                while counters["next_eval"] <= frames_now:
-                    counters["next_eval"] += cfg.eval.interval
-            if frames_now >= counters["next_checkpoint"] or frames_now >= total or stop.requested:
-                while counters["next_checkpoint"] <= frames_now:
-                    counters["next_checkpoint"] += cfg.checkpoint.interval
-                save_checkpoint()
-            if stop.requested or frames_now >= total:
-                break
-            t_collect = time.perf_counter()
-    for s in seeds:
-        if s.collector is not None:
-            s.collector.shutdown()
-    if stop.requested:
-        print(f"stopped at frame {counters['frames']}; resume with resume={root}")
-    elif not last[0]:  # a group resumed from its final checkpoint
-        print(nothing_to_train("group", counters["frames"], cfg.collector.total_frames))
-        for i, s in enumerate(seeds):
-            with rng.use(i):
-                s.eval_env.set_seed(s.seed + 1_000_003 + counters["frames"])
-                last[i] = evaluate_agent(s.cfg, s.eval_env, s.agent)
-    for s in seeds:
-        if s.logger is not None and hasattr(s.logger, "shutdown"):
-            s.logger.shutdown()
-    out: dict[str, float] = {}
-    for s, metrics in zip(seeds, last, strict=True):
-        out.update({f"seed{s.seed}/{k}": v for k, v in metrics.items()})
-        if metrics:
-            print(f"{cfg.algorithm} on {cfg.env.name}, seed {s.seed}: eval/return "
-                  f"{metrics['eval/return']:.1f}, run directory {s.dir}")  # fmt: skip
-    for key in last[0]:
-        out[key] = sum(m[key] for m in last) / len(last)
-    return out
+    def _model_steps(self, call: bool):
+        owed = {t.schedule(call) for t in self.trainers}  # the seeds advance in lockstep
+        if len(owed) != 1:
+            raise RuntimeError(f"the seeds' world-model schedules disagree: {owed} steps owed")
+        out = None
+        for _ in range(owed.pop()):
+            out = self.group.update_world_model(self._sample())
+        return out
 
+    def pretrain(self) -> None:
+        if self.trainers:
+            self._model_steps(call=False)
 
-def _lockstep(iterators, rng: SeedStreams):
-    """One batch of every seed's collector, each drawn under its seed's stream, until the
-    first runs out (at once, for no collectors)."""
-    while iterators:
-        batches = []
-        for i, it in enumerate(iterators):
-            with rng.use(i):
-                batch = next(it, None)
-            if batch is None:
-                return
-            batches.append(batch)
-        yield batches
+    def world_model_step(self):
+        return self._model_steps(call=True) if self.trainers else None
+
+    def update(self, step_actor: bool) -> list[dict]:
+        group = self.group
+        out = group.update(self._sample(), step_actor)
+        keys = group.diagnostic_keys if group.expanding else None
+        return [dict(
+            critic_loss=out["loss_value"][i],
+            actor_loss=out["loss_actor"][i] if step_actor else None,
+            temperature=out["alpha"][i] if group.sac else None,
+            diagnostics=None if keys is None else
+            (out[keys.alpha][i], out[keys.horizon_weights][i], out[keys.horizon_variance][i]),
+        ) for i in range(self.num_seeds)]  # fmt: skip
 
 
 class GroupSampler:
@@ -453,57 +249,3 @@ def _optimizers(agent: Agent) -> list[torch.optim.Optimizer]:
     if agent.world_model_trainer is not None:
         opts.append(agent.world_model_trainer.optimizer)
     return opts
-
-
-def update_group_on_batch(cfg: DictConfig, seeds, group, counters: dict, n_frames: int):
-    """The updates a batch of ``n_frames`` new frames (per seed) pays for, as
-    :func:`~torchrl_rave.recipe.loop.update_on_batch` for one run: the same schedule, the
-    world model's pretraining and ``train_every``, every step one group call on the seeds'
-    own samples. Returns each seed's training metrics."""
-    acc = [defaultdict(list) for _ in seeds]
-    start_frames = learning_start(cfg)[0]
-    trainers = [s.agent.world_model_trainer for s in seeds]
-    model_based = trainers[0] is not None
-    if counters["frames"] < start_frames:
-        return acc
-
-    sample = GroupSampler([s.rb for s in seeds], group)
-
-    def model_step():
-        out = group.update_world_model(sample())
-        for t in trainers:
-            t.updates += 1
-        return out
-
-    if model_based and not trainers[0].pretrained:
-        for _ in range(trainers[0].pretrain_updates):
-            model_step()
-        for t in trainers:
-            t.pretrained = True
-    new_frames = min(n_frames, counters["frames"] - start_frames)
-    counters["update_budget"] += cfg.optim.utd_ratio * new_frames
-    n_updates = int(counters["update_budget"])
-    counters["update_budget"] -= n_updates
-    policy_delay = cfg.td3.policy_delay if cfg.algorithm == "td3" else 1
-    for _ in range(n_updates):
-        wm = None
-        if model_based:
-            if trainers[0].calls % trainers[0].train_every == 0:
-                wm = model_step()
-            for t in trainers:
-                t.calls += 1
-        step_actor = counters["updates"] % policy_delay == 0
-        out = group.update(sample(), step_actor)
-        counters["updates"] += 1
-        keys = group.diagnostic_keys if group.expanding else None
-        for i in range(len(seeds)):
-            record_update(
-                acc[i],
-                critic_loss=out["loss_value"][i],
-                actor_loss=out["loss_actor"][i] if step_actor else None,
-                temperature=out["alpha"][i] if group.sac else None,
-                world_model=None if wm is None else wm[i],
-                diagnostics=None if keys is None else
-                (out[keys.alpha][i], out[keys.horizon_weights][i], out[keys.horizon_variance][i]),
-            )  # fmt: skip
-    return acc

@@ -1,9 +1,27 @@
-"""The recipe's training loop: one run of any ``algorithm=``, from a config, into a run
-directory, resumable from its checkpoints.
+"""The recipe's training loop: one run of any ``algorithm=``, or a seed group
+(``seeds=[...]``), from a config, into a run directory, resumable from its checkpoints.
 
 :func:`train` is what ``python recipes/rave_mujoco.py`` and the ``torchrl-rave-train``
 command run, with the pieces of :mod:`torchrl_rave.recipe`; call it from a script with a
 config from :func:`~torchrl_rave.recipe.schema.default_config`.
+
+A single run is a group of one: the loop below holds a list of runs, each with its env,
+agent, replay buffer, checkpoints and logger, and one *learner* updates them all
+(:mod:`torchrl_rave.recipe.update`). With ``seeds=[...]`` each seed is an ordinary run of
+its own in ``<run_dir>/seed<s>/``, which every reader of a run directory takes as it is;
+the seeds advance in lockstep (every collector gives one batch, every replay buffer takes
+its own), their updates batched by a :class:`~torchrl_rave.trainers.SeedGroup`
+(:class:`~torchrl_rave.recipe.group.GroupLearner`). ``<run_dir>/group.json`` holds the
+group's config; ``resume=<run_dir>`` continues every seed from the newest checkpoint all of
+them have.
+
+Each seed of a group also has its own random stream
+(:class:`~torchrl_rave.trainers.SeedStreams`): its networks are initialised after
+``torch.manual_seed(seed)``, as a single run's are, and everything drawn for it afterwards
+(random and exploratory actions, replay sampling, the world model's bootstrap and rollouts,
+TD3's and SAC's noise) comes from its stream, in a single run's order. So a seed draws the
+same numbers in any group, alone or not, as a single run of that seed does; what can still
+differ is float rounding of the batched kernels.
 
 Examples:
     >>> cfg = default_config("collector.total_frames=200", algorithm="ddpg")  # doctest: +SKIP
@@ -12,24 +30,17 @@ Examples:
 
 from __future__ import annotations
 
+import contextlib
 import time
-from collections import defaultdict
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import torch
 import tqdm
 from omegaconf import DictConfig, OmegaConf
 from torchrl.checkpoint import GlobalRNGState
-from torchrl.data import ReplayBuffer
 
-from torchrl_rave.recipe.agent import (
-    Agent,
-    critic_loss_key,
-    make_agent,
-    make_env,
-    make_replay_buffer,
-    q_at_points,
-)
+from torchrl_rave.recipe.agent import Agent, make_agent, make_env, make_replay_buffer, q_at_points
 from torchrl_rave.recipe.checkpoint import (
     RunCheckpoint,
     check_new_run_dir,
@@ -48,10 +59,11 @@ from torchrl_rave.recipe.collect import (
     workers_share_weights,
 )
 from torchrl_rave.recipe.config import (
+    ConfigError,
     apply_process_settings,
     check_config,
+    check_group,
     check_resumable,
-    learning_start,
     replay_buffer_size,
     resolve_config,
     warn_if_no_updates,
@@ -59,76 +71,149 @@ from torchrl_rave.recipe.config import (
 from torchrl_rave.recipe.curriculum import make_curriculum, stage_config
 from torchrl_rave.recipe.episode import EpisodeCheckpoint, resume_collecting
 from torchrl_rave.recipe.evaluate import evaluate_agent, make_logger
+from torchrl_rave.recipe.group import (
+    GroupLearner,
+    common_checkpoint,
+    saved_group_config,
+    seed_config,
+    write_group_file,
+)
+from torchrl_rave.recipe.metrics import batch_metrics
 from torchrl_rave.recipe.reward import make_reward_relabelling, update_reward_weights
 from torchrl_rave.recipe.schema import default_config, defaults  # noqa: F401 (the example)
-from torchrl_rave.recipe.update import make_agent_step, ppo_update
+from torchrl_rave.recipe.update import AgentLearner, ppo_update, update_on_batch
+from torchrl_rave.trainers import SeedStreams
+
+__all__ = ["nothing_to_train", "train"]
 
 
 def train(cfg: DictConfig, run_dir: str) -> dict[str, float]:
-    """Runs (or, with ``cfg.resume`` set, continues) one training run; returns the final
-    evaluation metrics. Everything is written under ``run_dir``, which no other process
-    may train into meanwhile (:func:`exclusive_run`). A new run into a directory that
-    holds one already is refused (``FileExistsError``, naming ``resume=``)."""
+    """Runs (or, with ``cfg.resume`` set, continues) one training run, or the seed group of
+    ``cfg.seeds``; returns the final evaluation metrics (a group's: each seed's under
+    ``seed<s>/<metric>``, their mean over seeds under ``<metric>``). Everything is written
+    under ``run_dir``, which no other process may train into meanwhile
+    (:func:`exclusive_run`). A new run into a directory that holds one already is refused
+    (``FileExistsError``, naming ``resume=``)."""
     check_config(cfg)
     warn_if_no_updates(resolve_config(cfg))
     if not cfg.resume:
         check_new_run_dir(run_dir, group=cfg.get("seeds") is not None)
         Path(run_dir).mkdir(parents=True, exist_ok=True)
     with exclusive_run(cfg.resume or run_dir):
-        if cfg.get("seeds") is not None:  # S runs in one process, updates batched
-            from torchrl_rave.recipe.group import train_group
-
-            return train_group(cfg, run_dir)
         return _train(cfg, run_dir)
 
 
+@dataclass
+class _Run:
+    """One seed's run: its config, directory and everything it owns."""
+
+    seed: int
+    cfg: DictConfig
+    dir: Path
+    env: object
+    eval_env: object
+    agent: Agent
+    rb: object
+    checkpoint: RunCheckpoint
+    relabel: object = None  # reward relabelling: the replay buffer's transform, its schedule
+    delayed: object = None
+    logger: object = None
+    logger_state: dict = field(default_factory=dict)
+    episode: EpisodeCheckpoint = field(default_factory=EpisodeCheckpoint)
+    collector: object = None
+    rng_at_load: dict | None = None
+    last_eval: dict = field(default_factory=dict)
+
+
+class _SharedStream:
+    """A single run's random stream: the process's generators, as they are."""
+
+    @staticmethod
+    def use(i: int):
+        return contextlib.nullcontext()
+
+
+def _lockstep(iterators, streams):
+    """One batch of every run's collector, each drawn under its seed's stream, until the
+    first runs out (at once, for no collectors)."""
+    while iterators:
+        batches = []
+        for i, it in enumerate(iterators):
+            with streams.use(i):
+                batch = next(it, None)
+            if batch is None:
+                return
+            batches.append(batch)
+        yield batches
+
+
 def _train(cfg: DictConfig, run_dir: str) -> dict[str, float]:
+    group = cfg.get("seeds") is not None
+    if group and check_group(cfg):
+        raise ConfigError(check_group(cfg))
     cfg = resolve_config(cfg).copy()  # ppo: its rollout sets the collector's batch
+    root = Path(cfg.resume or run_dir)
     if cfg.resume:
-        run_dir = cfg.resume
-        saved = saved_config(run_dir, defaults())
+        saved = saved_group_config(root, cfg) if group else saved_config(root, defaults())
         check_resumable(cfg, saved)
         cfg.replay_buffer.size = saved.replay_buffer.size
     else:
         cfg.replay_buffer.size = replay_buffer_size(cfg)  # fixed once, so resuming keeps it
     device = torch.device(cfg.collector.device or ("cuda" if torch.cuda.is_available() else "cpu"))
     apply_process_settings(cfg)
-    torch.manual_seed(cfg.env.seed)
 
-    # Environments, agent, replay buffer; an in-process collector's env keeps its episode
-    # for the checkpoints (a worker collector's workers keep theirs)
-    # A curriculum's envs carry its stage's setting, the first stage's from the start.
+    # Each seed's environments, agent and replay buffer, initialised after its seed is
+    # set, as a single run's; an in-process collector's env keeps its episode for the
+    # checkpoints (a worker collector's workers keep theirs). A curriculum's envs carry
+    # its stage's setting, the first stage's from the start.
     record = cfg.collector.backend == "direct"
-    curriculum, run_cfg = make_curriculum(cfg), cfg
-    if curriculum is not None:
-        run_cfg = stage_config(cfg, curriculum)
-    env, eval_env = make_env(run_cfg, device, record_episode=record), make_env(run_cfg, device)
-    agent = make_agent(cfg, env, device)
-    rb = make_replay_buffer(cfg, device)
-    relabel, delayed = make_reward_relabelling(cfg, env)
-    if relabel is not None:  # every sample is relabelled with the weights of the moment
-        rb.append_transform(relabel)
-    update_agent = None
-    if not agent.algorithm.on_policy:
-        update_agent = make_agent_step(cfg, agent.loss, agent.optimizers, agent.target_updater)
+    curriculum = make_curriculum(cfg)
+
+    def envs(one: DictConfig):
+        stage = one if curriculum is None else stage_config(one, curriculum)
+        return make_env(stage, device, record_episode=record), make_env(stage, device)
+
+    seeds = [int(s) for s in cfg.seeds] if group else [int(cfg.env.seed)]
+    streams = SeedStreams(len(seeds), device) if group else _SharedStream()
+    runs: list[_Run] = []
+    for i, seed in enumerate(seeds):
+        one = seed_config(cfg, seed) if group else cfg
+        torch.manual_seed(seed)
+        env, eval_env = envs(one)
+        agent = make_agent(one, env, device)
+        seed_dir = root / f"seed{seed}" if group else root
+        seed_dir.mkdir(parents=True, exist_ok=True)
+        run = _Run(seed, one, seed_dir, env, eval_env, agent, make_replay_buffer(one, device),
+                   RunCheckpoint(seed_dir))  # fmt: skip
+        run.relabel, run.delayed = make_reward_relabelling(one, env)
+        if run.relabel is not None:  # every sample is relabelled with the weights of the moment
+            run.rb.append_transform(run.relabel)
+        runs.append(run)
+        if group:
+            streams.capture(i)  # from here on, seed i draws from its own stream
 
     # Counters and checkpoints; a resumed run restores everything it saved. Before any
     # work: the checkpoints can be written, and the disk has room for one.
-    checkpoint = RunCheckpoint(run_dir)
-    transition = env.fake_tensordict()
-    checkpoint.preflight(
-        lambda block: agent.checkpoint_bytes(cfg.replay_buffer.size, transition, block)
-    )
+    transition = runs[0].env.fake_tensordict()
+    for run in runs:
+        run.checkpoint.preflight(
+            lambda block, a=run.agent: a.checkpoint_bytes(cfg.replay_buffer.size, transition, block)
+        )
     counters = {"frames": 0, "updates": 0, "update_budget": 0.0, "curriculum_stage": 0}
     counters.update(next_eval=cfg.eval.interval, next_checkpoint=cfg.checkpoint.interval)
-    logger_state: dict = {}
-    episode, rng_at_load = EpisodeCheckpoint(), None
-    if cfg.resume:
-        state = dict(counters=counters, replay_buffer=rb, logger=logger_state)
-        loaded = checkpoint.load(**state, **agent.state_components())
-        rng_at_load = GlobalRNGState().state_dict()
-        episode.load_state_dict(checkpoint.read_optional("episode", loaded))
-    logger = make_logger(cfg, run_dir, logger_state or None)
+    if cfg.resume:  # a group: from the newest checkpoint every seed has
+        frame = common_checkpoint(runs) if group else None
+        for i, run in enumerate(runs):
+            path = None if frame is None else run.checkpoint.path(frame)
+            with streams.use(i):  # restores seed i's stream as its checkpoint saved it
+                loaded = run.checkpoint.load(
+                    path=path, counters=counters if i == 0 else dict(counters),
+                    replay_buffer=run.rb, logger=run.logger_state, **run.agent.state_components(),
+                )  # fmt: skip
+                run.rng_at_load = GlobalRNGState().state_dict()
+            run.episode.load_state_dict(run.checkpoint.read_optional("episode", loaded))
+    for run in runs:
+        run.logger = make_logger(run.cfg, str(run.dir), run.logger_state or None)
     # A resumed run continues its curriculum's stage, in envs built for it.
     if curriculum is not None and counters["curriculum_stage"]:
         try:
@@ -140,123 +225,161 @@ def _train(cfg: DictConfig, run_dir: str) -> dict[str, float]:
                 f"({len(curriculum.values)} stages, from 0); the checkpoint was edited, or "
                 "the run was saved with other stages: resume with those"
             ) from None
-        run_cfg = stage_config(cfg, curriculum)
-        env.close()
-        eval_env.close()
-        env = make_env(run_cfg, device, record_episode=record)
-        eval_env = make_env(run_cfg, device)
+        for run in runs:
+            run.env.close()
+            run.eval_env.close()
+            run.env, run.eval_env = envs(run.cfg)
+    on_policy = runs[0].agent.algorithm.on_policy
+    learner = None
+    if group:
+        learner = GroupLearner(cfg, [r.agent for r in runs], [r.rb for r in runs], streams)
+    elif not on_policy:
+        learner = AgentLearner(cfg, runs[0].agent, runs[0].rb)
     # A resumed run continues the episode of its checkpoint where it can (below); where it
     # cannot, a new seed keeps it from replaying old episodes.
-    env.set_seed(cfg.env.seed + counters["frames"])
+    for i, run in enumerate(runs):
+        with streams.use(i):
+            run.env.set_seed(run.seed + counters["frames"])
 
     def save_checkpoint():
-        return checkpoint.save(
-            counters["frames"],
-            config=OmegaConf.to_container(cfg, resolve=True),
-            counters=counters,
-            replay_buffer=rb,
-            logger={} if logger is None else logger.state_dict(),
-            episode=episode,
-            **agent.state_components(),
-        )
+        if group:
+            learner.before_save()
+            write_group_file(root, cfg)
+        paths = []
+        for i, run in enumerate(runs):
+            with streams.use(i):  # the checkpoint's random state is seed i's stream
+                paths.append(run.checkpoint.save(
+                    counters["frames"],
+                    config=OmegaConf.to_container(run.cfg, resolve=True),
+                    counters=dict(counters),
+                    replay_buffer=run.rb,
+                    logger={} if run.logger is None else run.logger.state_dict(),
+                    episode=run.episode,
+                    **run.agent.state_components(),
+                ))  # fmt: skip
+        return paths if group else paths[0]
 
     def save_after_failure():
-        # mid-batch (a hung or failed collector) or a dropped batch (NaN): the episode
-        # no longer matches the saved frames; a resumed run starts a new one
-        episode.attach(None, None)
+        # mid-batch (a hung or failed collector) or a dropped batch (NaN): the episodes
+        # no longer match the saved frames; a resumed run starts new ones
+        for run in runs:
+            run.episode.attach(None, None)
         return save_checkpoint()
+
+    def named(run: _Run) -> str:
+        return f"{cfg.env.name} (seed {run.seed})" if group else cfg.env.name
 
     # Main loop
     total = cfg.collector.total_frames
-    last_eval = {}
     pbar = tqdm.tqdm(
         total=total, initial=counters["frames"], unit="frames", disable=not cfg.logger.progress_bar
     )
     start, frames_at_start = time.perf_counter(), counters["frames"]
-    collector = None
-    with StopRequest() as stop, shutdown_on_error(lambda: collector):
+    with StopRequest() as stop, contextlib.ExitStack() as on_error:
+        for run in runs:  # on an error, no run's workers outlive it
+            on_error.enter_context(shutdown_on_error(lambda run=run: run.collector))
         while counters["frames"] < total:  # again after each curriculum stage
-            collector = make_collector(run_cfg, env, agent.policy, device, counters["frames"])
-            episode.attach(env, collector)
-            if rng_at_load is not None:  # the first collector of a resumed run
-                seed = cfg.env.seed + counters["frames"]
-                resume_collecting(episode, env, collector, seed, rng_at_load)
-                rng_at_load = None
+            for i, run in enumerate(runs):
+                with streams.use(i):
+                    stage = run.cfg if curriculum is None else stage_config(run.cfg, curriculum)
+                    run.collector = make_collector(
+                        stage, run.env, run.agent.policy, device, counters["frames"]
+                    )
+                    run.episode.attach(run.env, run.collector)
+                    if run.rng_at_load is not None:  # the first collector of a resumed run
+                        resume_collecting(run.episode, run.env, run.collector,
+                                          run.seed + counters["frames"], run.rng_at_load)  # fmt: skip
+                        run.rng_at_load = None
+                run.episode.workers_behind = False
             next_stage = False
             synced_at = counters["updates"]  # the workers start with the current weights
-            episode.workers_behind = False
-            shared = workers_share_weights(collector, agent.policy)
+            shared = [workers_share_weights(r.collector, r.agent.policy) for r in runs]
+            iterators = [
+                guarded_batches(r.collector, r.cfg, save_after_failure, lambda: counters["frames"],
+                                str(r.dir))
+                for r in runs
+            ]  # fmt: skip
             t_collect = time.perf_counter()
-            batches = guarded_batches(
-                collector, cfg, save_after_failure, lambda: counters["frames"], run_dir
-            )
-            for batch in batches:
-                data = batch.reshape(-1)
+            for batches in _lockstep(iterators, streams):
                 collect_s = time.perf_counter() - t_collect
-                bad = check_finite(data)
-                if bad is not None:
-                    where = stop_run(collector, save_after_failure)
-                    raise NonFiniteEnvOutput(
-                        f"{cfg.env.name} produced {bad} within frames "
-                        f"{counters['frames']}-{counters['frames'] + data.numel()}; the run "
-                        f"stopped before that batch reached the replay buffer; {where} "
-                        f"(frame {counters['frames']}): fix the env and rerun with "
-                        f"resume={run_dir}"
-                    )
-                counters["frames"] += data.numel()
+                data = [b.reshape(-1) for b in batches]
+                for run, d in zip(runs, data, strict=True):
+                    bad = check_finite(d)
+                    if bad is not None:
+                        where = stop_run(run.collector, save_after_failure)
+                        raise NonFiniteEnvOutput(
+                            f"{named(run)} produced {bad} within frames "
+                            f"{counters['frames']}-{counters['frames'] + d.numel()}; the run "
+                            f"stopped before that batch reached the replay buffer; {where} "
+                            f"(frame {counters['frames']}): fix the env and rerun with "
+                            f"resume={root}"
+                        )
+                n_frames = data[0].numel()
+                counters["frames"] += n_frames
                 t_update = time.perf_counter()
-                if agent.algorithm.on_policy:  # GAE runs along each worker's time axis
-                    acc = ppo_update(cfg, agent, rb, batch, counters)
+                if on_policy:  # GAE runs along each worker's time axis
+                    accs = [ppo_update(cfg, run.agent, run.rb, b, counters)
+                            for run, b in zip(runs, batches, strict=True)]  # fmt: skip
                 else:
-                    rb.extend(data)
-                    if agent.world_model_trainer is not None:
-                        agent.world_model_trainer.extend(data)
-                    weights = {}
-                    if relabel is not None:
-                        weights = update_reward_weights(cfg, relabel, delayed, counters, last_eval)
-                    acc = update_on_batch(cfg, agent, update_agent, rb, counters, data.numel())
-                    for key, value in weights.items():
-                        acc[key].append(torch.tensor(value))
+                    weights = []
+                    for run, d in zip(runs, data, strict=True):
+                        run.rb.extend(d)
+                        if run.agent.world_model_trainer is not None:
+                            run.agent.world_model_trainer.extend(d)
+                        weights.append({} if run.relabel is None else update_reward_weights(
+                            cfg, run.relabel, run.delayed, counters, run.last_eval))  # fmt: skip
+                    accs = update_on_batch(cfg, learner, counters, n_frames)
+                    for acc, w in zip(accs, weights, strict=True):
+                        for key, value in w.items():
+                            acc[key].append(torch.tensor(value))
                 update_s = time.perf_counter() - t_update
                 if counters["updates"] - synced_at >= cfg.collector.weight_sync_every:
-                    push_or_stop(collector, agent.policy, cfg, save_after_failure,
-                                 counters["frames"], run_dir)  # fmt: skip
+                    for run in runs:
+                        push_or_stop(run.collector, run.agent.policy, run.cfg, save_after_failure,
+                                     counters["frames"], str(run.dir))  # fmt: skip
                     synced_at = counters["updates"]
-                episode.workers_behind = counters["updates"] != synced_at and not shared
+                for run, s in zip(runs, shared, strict=True):
+                    run.episode.workers_behind = counters["updates"] != synced_at and not s
 
                 frames_now = counters["frames"]
+                evaluate = frames_now >= counters["next_eval"] or frames_now >= total
                 fps = (frames_now - frames_at_start) / (time.perf_counter() - start)
-                metrics = batch_metrics(acc, data, collect_s, update_s, fps)
                 stage = None if curriculum is None else curriculum.stage  # collected in
-                if frames_now >= counters["next_eval"] or frames_now >= total:
-                    t_eval = time.perf_counter()
-                    eval_env.set_seed(cfg.env.seed + 1_000_003 + frames_now)
-                    try:
-                        last_eval = evaluate_agent(cfg, eval_env, agent)
-                    except NonFiniteEnvOutput as err:
-                        where = stop_run(collector, save_checkpoint)
-                        raise NonFiniteEnvOutput(
-                            f"{cfg.env.name}: {err} at frame {frames_now}; {where}: fix the "
-                            f"env and rerun with resume={run_dir}"
-                        ) from None
-                    metrics.update(last_eval)
-                    metrics["time/eval_s"] = time.perf_counter() - t_eval
+                for i, (run, d, acc) in enumerate(zip(runs, data, accs, strict=True)):
+                    metrics = batch_metrics(acc, d, collect_s, update_s, fps)
+                    if evaluate:
+                        t_eval = time.perf_counter()
+                        with streams.use(i):
+                            run.eval_env.set_seed(run.seed + 1_000_003 + frames_now)
+                            try:
+                                run.last_eval = evaluate_agent(run.cfg, run.eval_env, run.agent)
+                            except NonFiniteEnvOutput as err:
+                                where = stop_run(run.collector, save_checkpoint)
+                                raise NonFiniteEnvOutput(
+                                    f"{named(run)}: {err} at frame {frames_now}; {where}: fix "
+                                    f"the env and rerun with resume={root}"
+                                ) from None
+                        metrics.update(run.last_eval)
+                        metrics["time/eval_s"] = time.perf_counter() - t_eval
+                    if stage is not None:
+                        metrics["train/curriculum_stage"] = stage
+                    metrics.update(
+                        q_at_points(run.agent.loss, cfg.logger.q_points, cfg.env.reward_scale)
+                    )
+                    if run.logger is not None:
+                        for key, value in metrics.items():
+                            run.logger.log_scalar(key, value, step=frames_now)
+                if evaluate:
                     while counters["next_eval"] <= frames_now:
                         counters["next_eval"] += cfg.eval.interval
                     if curriculum is not None and frames_now < total:
-                        next_stage = curriculum.update(last_eval)
+                        next_stage = curriculum.update(runs[0].last_eval)
                         counters["curriculum_stage"] = curriculum.stage
                         if next_stage:  # the next stage starts new episodes in new envs
-                            episode.attach(None, None)
-                if stage is not None:
-                    metrics["train/curriculum_stage"] = stage
-                metrics.update(q_at_points(agent.loss, cfg.logger.q_points, cfg.env.reward_scale))
-                if logger is not None:
-                    for key, value in metrics.items():
-                        logger.log_scalar(key, value, step=frames_now)
-                pbar.update(data.numel())
-                if last_eval:
-                    pbar.set_postfix(eval_return=f"{last_eval['eval/return']:.1f}")
+                            runs[0].episode.attach(None, None)
+                pbar.update(n_frames)
+                if runs[0].last_eval:
+                    pbar.set_postfix(eval_return=f"{runs[0].last_eval['eval/return']:.1f}")
                 if (
                     frames_now >= counters["next_checkpoint"]
                     or frames_now >= total
@@ -265,42 +388,56 @@ def _train(cfg: DictConfig, run_dir: str) -> dict[str, float]:
                     while counters["next_checkpoint"] <= frames_now:
                         counters["next_checkpoint"] += cfg.checkpoint.interval
                     save_checkpoint()
-                if stop.requested or next_stage:
+                if stop.requested or next_stage or frames_now >= total:
                     break
                 t_collect = time.perf_counter()
             if stop.requested or not next_stage:
                 break
-            # the next stage: new envs with its setting, and a collector for them
-            collector.shutdown()
-            run_cfg = stage_config(cfg, curriculum)
-            env.close()
-            eval_env.close()
-            env = make_env(run_cfg, device, record_episode=record)
-            eval_env = make_env(run_cfg, device)
-            env.set_seed(cfg.env.seed + counters["frames"])
+            # the next stage: new envs with its setting, and collectors for them
+            for run in runs:
+                run.collector.shutdown()
+                run.env.close()
+                run.eval_env.close()
+                run.env, run.eval_env = envs(run.cfg)
+                run.env.set_seed(run.seed + counters["frames"])
     pbar.close()
-    if collector is not None:
-        collector.shutdown()
+    for run in runs:
+        if run.collector is not None:
+            run.collector.shutdown()
     if stop.requested:
-        print(f"stopped at frame {counters['frames']}; resume with resume={run_dir}")
-        return last_eval
-    if not last_eval:  # a run resumed from its final checkpoint
-        print(nothing_to_train("run", counters["frames"], cfg.collector.total_frames))
-        eval_env.set_seed(cfg.env.seed + 1_000_003 + counters["frames"])
-        last_eval = evaluate_agent(cfg, eval_env, agent)
+        print(f"stopped at frame {counters['frames']}; resume with resume={root}")
+    elif not runs[0].last_eval:  # a run resumed from its final checkpoint
+        print(nothing_to_train("group" if group else "run", counters["frames"], total))
+        for i, run in enumerate(runs):
+            with streams.use(i):
+                run.eval_env.set_seed(run.seed + 1_000_003 + counters["frames"])
+                run.last_eval = evaluate_agent(run.cfg, run.eval_env, run.agent)
     elapsed = time.perf_counter() - start
-    print(
-        f"{cfg.algorithm} on {cfg.env.name}, seed {cfg.env.seed}: {counters['frames']} frames, "
-        f"{counters['updates']} updates, {elapsed:.0f} s of training since this start\n"
-        f"  eval/return         {last_eval['eval/return']:.1f} ± "
-        f"{last_eval['eval/return_std']:.1f} over {cfg.eval.episodes} episodes\n"
-        f"  eval/episode_length {last_eval['eval/episode_length']:.1f}\n"
-        f"  eval/falling_rate   {last_eval['eval/falling_rate']:.2f}\n"
-        f"  run directory       {run_dir}"
-    )
-    if logger is not None and hasattr(logger, "shutdown"):
-        logger.shutdown()
-    return {**last_eval, "frames": counters["frames"], "updates": counters["updates"]}
+    for run in runs:
+        last = run.last_eval
+        if last:
+            print(
+                f"{cfg.algorithm} on {cfg.env.name}, seed {run.seed}: {counters['frames']} "
+                f"frames, {counters['updates']} updates, {elapsed:.0f} s of training since "
+                f"this start\n"
+                f"  eval/return         {last['eval/return']:.1f} ± "
+                f"{last['eval/return_std']:.1f} over {cfg.eval.episodes} episodes\n"
+                f"  eval/episode_length {last['eval/episode_length']:.1f}\n"
+                f"  eval/falling_rate   {last['eval/falling_rate']:.2f}\n"
+                f"  run directory       {run.dir}"
+            )
+        if run.logger is not None and hasattr(run.logger, "shutdown"):
+            run.logger.shutdown()
+    if not group:
+        last = runs[0].last_eval
+        return last if stop.requested else {**last, "frames": counters["frames"],
+                                            "updates": counters["updates"]}  # fmt: skip
+    out: dict[str, float] = {}
+    for run in runs:
+        out.update({f"seed{run.seed}/{k}": v for k, v in run.last_eval.items()})
+    for key in runs[0].last_eval:
+        out[key] = sum(r.last_eval[key] for r in runs) / len(runs)
+    return out
 
 
 def nothing_to_train(what: str, frames: int, total: int) -> str:
@@ -310,92 +447,3 @@ def nothing_to_train(what: str, frames: int, total: int) -> str:
         f"nothing to train: the {what} is at {frames} frames and collector.total_frames="
         f"{total} (raise it to train on); evaluating its last checkpoint"
     )
-
-
-def update_on_batch(
-    cfg: DictConfig, agent: Agent, update_agent, rb: ReplayBuffer, counters: dict, n_frames: int
-) -> dict[str, list[torch.Tensor]]:
-    """The updates a batch of ``n_frames`` new frames pays for (``optim.utd_ratio`` per
-    frame once the learning starts); returns the training metrics of each update."""
-    acc = defaultdict(list)
-    start_frames = learning_start(cfg)[0]
-    wm_trainer = agent.world_model_trainer
-    if counters["frames"] < start_frames:
-        return acc
-    if wm_trainer is not None:
-        wm_trainer.pretrain(rb)  # once, as soon as F frames are stored
-    new_frames = min(n_frames, counters["frames"] - start_frames)
-    counters["update_budget"] += cfg.optim.utd_ratio * new_frames
-    n_updates = int(counters["update_budget"])
-    counters["update_budget"] -= n_updates
-    policy_delay = cfg.td3.policy_delay if agent.algorithm.loss == "td3" else 1
-    critic_key = critic_loss_key(agent.loss)
-    for _ in range(n_updates):
-        wm = None if wm_trainer is None else wm_trainer.step(rb)
-        step_actor = counters["updates"] % policy_delay == 0
-        out = update_agent(rb.sample(), step_actor)
-        counters["updates"] += 1
-        diagnostics = None
-        if agent.algorithm.model_based:
-            estimator = agent.loss.value_estimator
-            diag, keys = estimator.diagnostics, estimator.tensor_keys
-            diagnostics = (
-                diag[keys.alpha],
-                diag[keys.horizon_weights],
-                diag[keys.horizon_variance],
-            )
-        record_update(
-            acc,
-            critic_loss=out[critic_key].detach(),
-            actor_loss=out["loss_actor"].detach() if step_actor else None,
-            temperature=out["alpha"].detach() if "alpha" in out.keys() else None,  # noqa: SIM118
-            world_model=wm,
-            diagnostics=diagnostics,
-        )
-    return acc
-
-
-#: the world-model step's outputs logged as ``train/wm_<name>``
-WORLD_MODEL_METRICS = ("transition_nll", "transition_mse", "reward_nll", "reward_mse",
-                       "termination_bce")  # fmt: skip
-
-
-def record_update(
-    acc: dict, *, critic_loss, actor_loss=None, temperature=None, world_model=None,
-    diagnostics=None,
-) -> None:  # fmt: skip
-    """Appends one update's training metrics to ``acc`` under their logged names: the
-    critic's (and actor's) loss, SAC's temperature, the world-model step's outputs, and a
-    value-expansion target's per-sample diagnostics ``(alpha, horizon weights, candidate
-    variances)`` as batch means (``alpha`` is eq. 12's confidence)."""
-    if world_model is not None:
-        for key in WORLD_MODEL_METRICS:
-            acc[f"train/wm_{key}"].append(world_model[key])
-    acc["train/loss_critic"].append(critic_loss)
-    if actor_loss is not None:
-        acc["train/loss_actor"].append(actor_loss)
-    if temperature is not None:
-        acc["train/sac_temperature"].append(temperature)
-    if diagnostics is not None:
-        alpha, weights, variance = diagnostics
-        acc["train/rave_alpha"].append(alpha.mean())
-        for h, w in enumerate(weights.mean(0).unbind(-1)):
-            acc[f"train/horizon_weight_h{h}"].append(w)
-        for h, v in enumerate(variance.mean(0).unbind(-1)):
-            acc[f"train/candidate_variance_h{h}"].append(v)
-
-
-def batch_metrics(acc: dict, data, collect_s: float, update_s: float, fps: float) -> dict:
-    """One collected batch's logged metrics: the means of its updates' ``acc``, the return
-    of the training episodes that ended in ``data``, and its timings."""
-    metrics = {k: torch.stack(v).mean().item() for k, v in acc.items()}
-    done = data["next", "done"].squeeze(-1)
-    if done.any():
-        metrics["train/episode_reward"] = data["next", "episode_reward"][done].mean().item()
-    n_updates = len(acc.get("train/loss_critic", ()))
-    metrics["time/collect_s"] = collect_s
-    metrics["time/update_s"] = update_s
-    if n_updates:
-        metrics["time/updates_per_s"] = n_updates / max(update_s, 1e-9)
-    metrics["time/fps"] = fps
-    return metrics

@@ -17,7 +17,9 @@ from __future__ import annotations
 
 import re
 
-__all__ = ["METRICS", "describe"]
+import torch
+
+__all__ = ["METRICS", "WORLD_MODEL_METRICS", "batch_metrics", "describe", "record_update"]
 
 #: metric name (with ``{H}`` or ``{name}`` where it varies) -> its meaning
 METRICS: dict[str, str] = {
@@ -90,3 +92,49 @@ def describe(name: str) -> str | None:
         if pattern.match(name):
             return meaning
     return None
+
+
+#: the world-model step's outputs logged as ``train/wm_<name>``
+WORLD_MODEL_METRICS = ("transition_nll", "transition_mse", "reward_nll", "reward_mse",
+                       "termination_bce")  # fmt: skip
+
+
+def record_update(
+    acc: dict, *, critic_loss, actor_loss=None, temperature=None, world_model=None,
+    diagnostics=None,
+) -> None:  # fmt: skip
+    """Appends one update's training metrics to ``acc`` under their logged names: the
+    critic's (and actor's) loss, SAC's temperature, the world-model step's outputs, and a
+    value-expansion target's per-sample diagnostics ``(alpha, horizon weights, candidate
+    variances)`` as batch means (``alpha`` is eq. 12's confidence)."""
+    if world_model is not None:
+        for key in WORLD_MODEL_METRICS:
+            acc[f"train/wm_{key}"].append(world_model[key])
+    acc["train/loss_critic"].append(critic_loss)
+    if actor_loss is not None:
+        acc["train/loss_actor"].append(actor_loss)
+    if temperature is not None:
+        acc["train/sac_temperature"].append(temperature)
+    if diagnostics is not None:
+        alpha, weights, variance = diagnostics
+        acc["train/rave_alpha"].append(alpha.mean())
+        for h, w in enumerate(weights.mean(0).unbind(-1)):
+            acc[f"train/horizon_weight_h{h}"].append(w)
+        for h, v in enumerate(variance.mean(0).unbind(-1)):
+            acc[f"train/candidate_variance_h{h}"].append(v)
+
+
+def batch_metrics(acc: dict, data, collect_s: float, update_s: float, fps: float) -> dict:
+    """One collected batch's logged metrics: the means of its updates' ``acc``, the return
+    of the training episodes that ended in ``data``, and its timings."""
+    metrics = {k: torch.stack(v).mean().item() for k, v in acc.items()}
+    done = data["next", "done"].squeeze(-1)
+    if done.any():
+        metrics["train/episode_reward"] = data["next", "episode_reward"][done].mean().item()
+    n_updates = len(acc.get("train/loss_critic", ()))
+    metrics["time/collect_s"] = collect_s
+    metrics["time/update_s"] = update_s
+    if n_updates:
+        metrics["time/updates_per_s"] = n_updates / max(update_s, 1e-9)
+    metrics["time/fps"] = fps
+    return metrics

@@ -21,6 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
+from torchrl_rave.recipe.agent import check_env
 from torchrl_rave.recipe.checkpoint import (
     DamagedCheckpoint,
     RunCheckpoint,
@@ -28,6 +29,8 @@ from torchrl_rave.recipe.checkpoint import (
     config_for_resume,
     newest_frame,
 )
+from torchrl_rave.recipe.config import ConfigError, check_config, override_keys, preset_of
+from torchrl_rave.recipe.schema import with_algorithm_preset
 
 __all__ = [
     "Cell",
@@ -299,9 +302,6 @@ def check_cells(cells: Sequence[Cell], config_dir: str | Path, config_name: str 
     from hydra import compose, initialize_config_dir
     from omegaconf import OmegaConf
 
-    from torchrl_rave.recipe.config import ConfigError, check_config, override_keys, preset_of
-    from torchrl_rave.recipe.schema import with_algorithm_preset
-
     where: dict[str, list[Path]] = {}  # each problem, and the cells that have it
     counts = Counter(Path(cell.run_dir) for cell in cells)
     shared = [  # two runs at once in one directory would corrupt both
@@ -346,9 +346,6 @@ def check_cells(cells: Sequence[Cell], config_dir: str | Path, config_name: str 
 def _env_problems(cfg) -> list[str]:
     """The problems of building ``cfg``'s env (:func:`~torchrl_rave.recipe.agent.check_env`):
     a keyword or a space the learners cannot use, a family whose extra is not installed."""
-    from torchrl_rave.recipe.agent import check_env
-    from torchrl_rave.recipe.config import ConfigError
-
     try:
         check_env(cfg)
     except ConfigError as e:

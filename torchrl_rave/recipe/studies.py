@@ -10,6 +10,7 @@ from pathlib import Path
 from omegaconf import DictConfig, OmegaConf
 
 from torchrl_rave._checks import NON_NEGATIVE_INT, POSITIVE_INT
+from torchrl_rave.recipe.config import ALGORITHMS, ConfigError
 
 __all__ = ["STUDY_KEYS", "TASK_KEYS", "Task", "load_study", "report_frames", "result_dir", "tasks"]
 
@@ -58,8 +59,6 @@ def load_study(path: Path) -> DictConfig:
     reference implementation's runs of the same tasks, algorithms and seeds, which the
     report's calibration table sets beside the study's own). Every problem is raised at
     once, as one :class:`~torchrl_rave.recipe.config.ConfigError`."""
-    from torchrl_rave.recipe.config import ALGORITHMS, ConfigError
-
     study = OmegaConf.load(path)
     problems = [f"the study has no {key!r}" for key in STUDY_KEYS[:5] if key not in study]
     problems += [

@@ -1,4 +1,15 @@
-"""The agent's update step, optionally compiled."""
+"""The updates a collected batch pays for: the schedule (:func:`update_on_batch`), one
+agent's update step, optionally compiled (:class:`AgentLearner`), and PPO's iteration.
+
+The schedule is written once for any number of seeds: it drives a *learner*, the updates
+of a run's seeds, which is :class:`AgentLearner` for a single run and
+:class:`~torchrl_rave.recipe.group.GroupLearner` for a seed group (one batched update
+of all its seeds). A learner has ``num_seeds``, ``policy_delay``, and three calls:
+``pretrain()`` (the world models' pretraining, once), ``world_model_step()`` (the model
+steps one agent update owes, each seed's outputs or ``None``) and ``update(step_actor)``
+(one agent update: each seed's :func:`~torchrl_rave.recipe.metrics.record_update`
+keywords).
+"""
 
 from __future__ import annotations
 
@@ -10,8 +21,18 @@ from omegaconf import DictConfig
 from tensordict import TensorDictBase
 
 from torchrl_rave.objectives.compile import compile_loss
+from torchrl_rave.recipe.agent import critic_loss_key
+from torchrl_rave.recipe.config import learning_start
+from torchrl_rave.recipe.metrics import record_update
 
-__all__ = ["agent_update", "make_agent_step", "ppo_update", "total_loss"]
+__all__ = [
+    "AgentLearner",
+    "agent_update",
+    "make_agent_step",
+    "ppo_update",
+    "total_loss",
+    "update_on_batch",
+]
 
 
 def total_loss(loss) -> Callable[[TensorDictBase], tuple[TensorDictBase, torch.Tensor]]:
@@ -106,4 +127,69 @@ def ppo_update(
             if "entropy" in out.keys():  # noqa: SIM118
                 acc["train/ppo_entropy"].append(out["entropy"].detach())
     acc["train/lr"].append(torch.tensor(lr))
+    return acc
+
+
+class AgentLearner:
+    """A single run's learner (see the module's docstring): its agent's own loss,
+    optimisers and world-model trainer, each step on a sample of its replay buffer."""
+
+    num_seeds = 1
+
+    def __init__(self, cfg: DictConfig, agent, rb) -> None:
+        self.agent, self.rb = agent, rb
+        self.policy_delay = cfg.td3.policy_delay if agent.algorithm.loss == "td3" else 1
+        self._step = make_agent_step(cfg, agent.loss, agent.optimizers, agent.target_updater)
+        self._critic_key = critic_loss_key(agent.loss)
+
+    def pretrain(self) -> None:
+        if self.agent.world_model_trainer is not None:
+            self.agent.world_model_trainer.pretrain(self.rb)
+
+    def world_model_step(self) -> list | None:
+        trainer = self.agent.world_model_trainer
+        return None if trainer is None else [trainer.step(self.rb)]
+
+    def update(self, step_actor: bool) -> list[dict]:
+        out = self._step(self.rb.sample(), step_actor)
+        diagnostics = None
+        if self.agent.algorithm.model_based:
+            estimator = self.agent.loss.value_estimator
+            diag, keys = estimator.diagnostics, estimator.tensor_keys
+            diagnostics = (
+                diag[keys.alpha],
+                diag[keys.horizon_weights],
+                diag[keys.horizon_variance],
+            )
+        return [dict(
+            critic_loss=out[self._critic_key].detach(),
+            actor_loss=out["loss_actor"].detach() if step_actor else None,
+            temperature=out["alpha"].detach() if "alpha" in out.keys() else None,  # noqa: SIM118
+            diagnostics=diagnostics,
+        )]  # fmt: skip
+
+
+def update_on_batch(
+    cfg: DictConfig, learner, counters: dict, n_frames: int
+) -> list[dict[str, list[torch.Tensor]]]:
+    """The updates a batch of ``n_frames`` new frames (per seed) pays for: ``optim.utd_ratio``
+    per frame once the learning starts, the world models pretrained first (once), each
+    agent update after the model steps it owes, the actor every ``policy_delay`` updates.
+    Returns each seed's training metrics of every update."""
+    acc = [defaultdict(list) for _ in range(learner.num_seeds)]
+    start_frames = learning_start(cfg)[0]
+    if counters["frames"] < start_frames:
+        return acc
+    learner.pretrain()  # once, as soon as F frames are stored
+    new_frames = min(n_frames, counters["frames"] - start_frames)
+    counters["update_budget"] += cfg.optim.utd_ratio * new_frames
+    n_updates = int(counters["update_budget"])
+    counters["update_budget"] -= n_updates
+    for _ in range(n_updates):
+        wm = learner.world_model_step()
+        step_actor = counters["updates"] % learner.policy_delay == 0
+        outs = learner.update(step_actor)
+        counters["updates"] += 1
+        for i, out in enumerate(outs):
+            record_update(acc[i], world_model=None if wm is None else wm[i], **out)
     return acc

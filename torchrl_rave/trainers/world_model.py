@@ -113,20 +113,33 @@ class WorldModelTrainer(TrainerHookBase):
             source: the replay buffer (each model step samples its own batch) or a batch
                 (every step of this call, pretraining included, uses it).
         """
-        out = self.pretrain(source)
-        if self.calls % self.train_every == 0:
-            out = self.update(self._batch(source))
-        self.calls += 1
-        return out
+        return self._take(self.schedule(), source)
 
     def pretrain(self, source: ReplayBuffer | TensorDictBase) -> TensorDictBase | None:
         """The ``pretrain_updates`` steps, once; :meth:`step` calls it, and a loop may call
         it earlier (as soon as ``F`` frames are stored). Returns the last step's outputs."""
-        out = None
+        return self._take(self.schedule(call=False), source)
+
+    def schedule(self, call: bool = True) -> int:
+        """Advances the schedule as :meth:`step` (``call=True``) or :meth:`pretrain`
+        (``call=False``) does, and returns the number of model steps that call takes (the
+        pretraining's at the first, then one every ``train_every`` calls), counted in
+        :attr:`updates` as taken. :meth:`step` and :meth:`pretrain` then take them; a
+        caller that takes them itself (a seed group steps all its seeds' models as one)
+        uses this alone, so that each seed's trainer keeps its schedule for checkpoints."""
+        n = 0
         if not self.pretrained:
-            for _ in range(self.pretrain_updates):
-                out = self.update(self._batch(source))
-            self.pretrained = True
+            n, self.pretrained = self.pretrain_updates, True
+        if call:
+            n += self.calls % self.train_every == 0
+            self.calls += 1
+        self.updates += n
+        return n
+
+    def _take(self, n: int, source) -> TensorDictBase | None:
+        out = None
+        for _ in range(n):
+            out = self._update(self._on_device(self._batch(source)))
         return out
 
     def update(self, batch: TensorDictBase) -> TensorDictBase:
