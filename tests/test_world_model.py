@@ -310,6 +310,51 @@ class TestWorldModelLoss:
         expected = torch.distributions.Normal(mean, (0.5 * logvar).exp()).log_prob(x).neg()
         torch.testing.assert_close(gaussian_nll(mean, logvar, x), expected)
 
+    def test_loss_terms_with_seed_dims_equal_each_seed_alone_and_a_hand_loop(self):
+        """The functional core takes ``[*S, N, B, F]``: each seed's slice gives what the
+        seed's tensors give alone, and the members' sum is a loop over members by hand."""
+        from torchrl_rave.objectives.world_model_loss import world_model_loss_terms
+
+        torch.manual_seed(0)
+        S, N, B, D = 3, 4, 5, 2
+
+        def parts(*lead):
+            return (
+                (torch.randn(*lead, N, B, D), torch.randn(*lead, N, B, D)), torch.randn(*lead, N, B, D),
+                (torch.randn(*lead, N, B, 1), torch.randn(*lead, N, B, 1)), torch.randn(*lead, N, B, 1),
+                torch.randn(*lead, N, B, 1), torch.randint(0, 2, (*lead, N, B, 1)).float(),
+                (torch.randn(*lead), torch.randn(*lead)),
+            )  # fmt: skip
+
+        args = parts(S)
+        coeffs = dict(reward_coeff=0.5, termination_coeff=2.0, logvar_bound_coeff=0.1)
+        group = world_model_loss_terms(*args, **coeffs)
+        for s in range(S):
+            one = world_model_loss_terms(
+                *[tuple(t[s] for t in a) if isinstance(a, tuple) else a[s] for a in args], **coeffs
+            )
+            for key, value in one.items():
+                torch.testing.assert_close(group[key][s], value, msg=key)
+        (mean, logvar), target = args[0], args[1]
+        (r_mean, r_logvar), r_target, logits, done, (tb, rb) = (
+            args[2],
+            args[3],
+            args[4],
+            args[5],
+            args[6],
+        )
+        for s in range(S):
+            nll = sum(gaussian_nll(mean[s, n], logvar[s, n], target[s, n]).mean() for n in range(N))
+            r_nll = sum(gaussian_nll(r_mean[s, n], r_logvar[s, n], r_target[s, n]).mean()
+                        for n in range(N))  # fmt: skip
+            bce = sum(torch.nn.functional.binary_cross_entropy_with_logits(logits[s, n], done[s, n])
+                      for n in range(N))  # fmt: skip
+            torch.testing.assert_close(group["loss_transition"][s], nll + 0.1 * tb[s])
+            torch.testing.assert_close(group["loss_reward"][s], 0.5 * (r_nll + 0.1 * rb[s]))
+            torch.testing.assert_close(group["loss_termination"][s], 2.0 * bce)
+            hits = ((logits[s] > 0).float() == done[s]).float().mean()
+            torch.testing.assert_close(group["termination_accuracy"][s], hits)
+
     def test_bootstrap_indices_independent_per_member(self):
         torch.manual_seed(0)
         loss = WorldModelEnsembleLoss(small_model(N=4))

@@ -15,7 +15,7 @@ from torchrl.objectives import LossModule
 from torchrl_rave._checks import check_finite_losses, check_not_empty, get_checked
 from torchrl_rave.modules.world_model import WorldModelEnsemble
 
-__all__ = ["WorldModelEnsembleLoss", "gaussian_nll"]
+__all__ = ["WorldModelEnsembleLoss", "gaussian_nll", "world_model_loss_terms"]
 
 _HALF_LOG_2PI = 0.5 * math.log(2 * math.pi)
 
@@ -28,6 +28,81 @@ def gaussian_nll(mean: torch.Tensor, logvar: torch.Tensor, target: torch.Tensor)
         tensor([0.9189])
     """
     return 0.5 * ((target - mean).pow(2) * torch.exp(-logvar) + logvar) + _HALF_LOG_2PI
+
+
+def world_model_loss_terms(
+    transition: tuple[torch.Tensor, torch.Tensor],
+    transition_target: torch.Tensor,
+    reward: tuple[torch.Tensor, torch.Tensor],
+    reward_target: torch.Tensor,
+    termination_logits: torch.Tensor,
+    terminated: torch.Tensor,
+    bound_penalties: tuple[torch.Tensor, torch.Tensor],
+    *,
+    reward_coeff: float = 1.0,
+    termination_coeff: float = 1.0,
+    logvar_bound_coeff: float = 0.01,
+) -> dict[str, torch.Tensor]:
+    """The world-model loss from the members' predictions: the functional core of
+    :class:`WorldModelEnsembleLoss`, for one ensemble or many (a seed group's).
+
+    Every tensor is ``[*S, N, B, F]``: any leading dimensions ``S`` (none for one
+    ensemble, the seed for a group), the ``N`` members, each member's ``B`` (bootstrapped)
+    transitions, the features. The members' losses are independent, so each is averaged
+    over its batch and features and the members are summed: one backward gives each member
+    exactly its own gradient.
+
+    Args:
+        transition: the transition head's ``(mean, logvar)`` of the normalised delta.
+        transition_target: the normalised delta ``next_obs - obs``.
+        reward: the reward head's ``(mean, logvar)``.
+        reward_target: the normalised reward.
+        termination_logits: the termination head's logits.
+        terminated: ``1`` where the transition terminated (floating).
+        bound_penalties: each model's ``sum(max_logvar) - sum(min_logvar)`` of the
+            transition and reward heads, ``[*S]``.
+
+    Keyword Args:
+        reward_coeff, termination_coeff, logvar_bound_coeff (float): as
+            :class:`WorldModelEnsembleLoss` takes them.
+
+    Returns:
+        ``loss_transition``, ``loss_reward``, ``loss_termination`` (``[*S]``, with
+        gradients) and, detached, the members' mean ``transition_nll``,
+        ``transition_mse``, ``reward_nll``, ``reward_mse``, ``termination_bce`` and the
+        ``termination_accuracy`` of the logits' sign (``[*S]``).
+
+    Examples:
+        >>> z = torch.zeros(2, 3, 1)  # N = 2 members, B = 3 transitions, one feature
+        >>> out = world_model_loss_terms((z, z), z, (z, z), z, z, z, (z.sum(), z.sum()))
+        >>> out["loss_transition"]  # 2 members x -log N(0; 0, 1)
+        tensor(1.8379)
+    """
+    mean, logvar = transition
+    transition_nll = gaussian_nll(mean, logvar, transition_target).mean((-2, -1))  # [*S, N]
+    transition_mse = (mean - transition_target).pow(2).mean((-2, -1))
+    r_mean, r_logvar = reward
+    reward_nll = gaussian_nll(r_mean, r_logvar, reward_target).mean((-2, -1))
+    reward_mse = (r_mean - reward_target).pow(2).mean((-2, -1))
+    termination_bce = F.binary_cross_entropy_with_logits(
+        termination_logits, terminated, reduction="none"
+    ).mean((-2, -1))
+    c = logvar_bound_coeff
+    transition_bound, reward_bound = bound_penalties
+    with torch.no_grad():
+        hit = (termination_logits > 0).to(terminated.dtype) == terminated
+        accuracy = hit.to(mean.dtype).mean((-3, -2, -1))
+    return {
+        "loss_transition": transition_nll.sum(-1) + c * transition_bound,
+        "loss_reward": reward_coeff * (reward_nll.sum(-1) + c * reward_bound),
+        "loss_termination": termination_coeff * termination_bce.sum(-1),
+        "transition_nll": transition_nll.detach().mean(-1),
+        "transition_mse": transition_mse.detach().mean(-1),
+        "reward_nll": reward_nll.detach().mean(-1),
+        "reward_mse": reward_mse.detach().mean(-1),
+        "termination_bce": termination_bce.detach().mean(-1),
+        "termination_accuracy": accuracy,
+    }
 
 
 class WorldModelEnsembleLoss(LossModule):
@@ -161,43 +236,22 @@ class WorldModelEnsembleLoss(LossModule):
         obs, action, next_obs = obs[idx], action[idx], next_obs[idx]  # [N, B, F]
         reward, terminated = reward[idx], terminated[idx]
 
-        # Members' losses are independent, so summing over members gives each member
-        # exactly its own gradient; batch and feature dimensions are averaged.
-        mean, logvar = wm.predict_transition(obs, action, per_member=True)
-        target = wm.target_delta(obs, next_obs)
-        transition_nll = gaussian_nll(mean, logvar, target).mean((1, 2))
-        transition_mse = (mean - target).pow(2).mean((1, 2))
-
-        r_mean, r_logvar = wm.predict_reward(obs, action, next_obs, per_member=True)
-        r_target = wm.reward_norm.normalize(reward)
-        reward_nll = gaussian_nll(r_mean, r_logvar, r_target).mean((1, 2))
-        reward_mse = (r_mean - r_target).pow(2).mean((1, 2))
-
-        logits = wm.termination_logits(next_obs, per_member=True)
-        termination_bce = F.binary_cross_entropy_with_logits(
-            logits, terminated, reduction="none"
-        ).mean((1, 2))
-
-        c = self.logvar_bound_coeff
-        loss_transition = transition_nll.sum() + c * wm.transition.bound_penalty()
-        loss_reward = self.reward_coeff * (reward_nll.sum() + c * wm.reward_model.bound_penalty())
-        loss_termination = self.termination_coeff * termination_bce.sum()
+        out = world_model_loss_terms(
+            wm.predict_transition(obs, action, per_member=True),
+            wm.target_delta(obs, next_obs),
+            wm.predict_reward(obs, action, next_obs, per_member=True),
+            wm.reward_norm.normalize(reward),
+            wm.termination_logits(next_obs, per_member=True),
+            terminated,
+            (wm.transition.bound_penalty(), wm.reward_model.bound_penalty()),
+            reward_coeff=self.reward_coeff,
+            termination_coeff=self.termination_coeff,
+            logvar_bound_coeff=self.logvar_bound_coeff,
+        )
         if check:
             check_finite_losses(
                 type(self).__name__,
-                {"loss_transition": loss_transition, "loss_reward": loss_reward},
+                {"loss_transition": out["loss_transition"], "loss_reward": out["loss_reward"]},
                 tensordict, [keys.observation, keys.action, keys.next_observation, keys.reward],
             )  # fmt: skip
-        with torch.no_grad():
-            accuracy = ((logits > 0).to(terminated.dtype) == terminated).to(obs.dtype).mean()
-        return TensorDict(
-            loss_transition=loss_transition,
-            loss_reward=loss_reward,
-            loss_termination=loss_termination,
-            transition_nll=transition_nll.detach().mean(),
-            transition_mse=transition_mse.detach().mean(),
-            reward_nll=reward_nll.detach().mean(),
-            reward_mse=reward_mse.detach().mean(),
-            termination_bce=termination_bce.detach().mean(),
-            termination_accuracy=accuracy,
-        )
+        return TensorDict(out)

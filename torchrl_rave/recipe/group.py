@@ -1,22 +1,11 @@
-"""The recipe with ``seeds=[...]``: S independent runs trained by one process, their updates
-batched across seeds (:class:`~torchrl_rave.trainers.SeedGroup`).
+"""What the recipe's loop (:mod:`torchrl_rave.recipe.loop`) needs for ``seeds=[...]``: the
+group's file (``<run_dir>/group.json``, its config), each seed's config, the newest
+checkpoint every seed has, and the group's learner (:class:`GroupLearner`: every seed's
+update as one call of a :class:`~torchrl_rave.trainers.SeedGroup`, on samples drawn by
+:class:`GroupSampler`).
 
-Each seed is an ordinary run of its own, written to ``<run_dir>/seed<s>/``: its own train and
-evaluation envs seeded with its seed, replay buffer, world model, critics, actor, optimiser
-state and exploration noise, and its own metrics and checkpoints, which every reader of a
-run directory (``read_scalar``, ``load_policy``, the analysis scripts) takes as they are.
-The seeds advance in lockstep: every collector gives one batch, every replay buffer takes
-its own, and the batch's updates run for all seeds at once. ``<run_dir>/group.json`` holds
-the group's config; ``resume=<run_dir>`` continues every seed from the newest checkpoint
-all of them have.
-
-Each seed also has its own random stream (:class:`~torchrl_rave.trainers.SeedStreams`):
-its networks are initialised after ``torch.manual_seed(seed)``, as a single run's are, and
-everything drawn for it afterwards (random and exploratory actions, replay sampling, the
-world model's bootstrap and rollouts, TD3's and SAC's noise) comes from its stream, in a
-single run's order. So a seed draws the same numbers in any group, alone or not, as a
-single run of that seed does; what can still differ is float rounding of the batched
-kernels.
+A group's seeds are ordinary runs, each in ``<run_dir>/seed<s>/``; the loop's docstring
+says how they advance and draw their random numbers.
 """
 
 from __future__ import annotations

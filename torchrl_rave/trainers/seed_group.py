@@ -64,7 +64,7 @@ from torchrl_rave.modules.tensor_call import TensorCall, _leaf, _linear_layers
 from torchrl_rave.objectives import functional as VF
 from torchrl_rave.objectives.ensemble_ddpg import EnsembleDDPGLoss
 from torchrl_rave.objectives.value_expansion import ValueExpansionEstimator
-from torchrl_rave.objectives.world_model_loss import WorldModelEnsembleLoss, gaussian_nll
+from torchrl_rave.objectives.world_model_loss import WorldModelEnsembleLoss, world_model_loss_terms
 
 __all__ = ["SeedGroup"]
 
@@ -962,42 +962,22 @@ class SeedGroup:
         obs, action, nxt = resample(obs), resample(action), resample(nxt)
         reward = resample(reward.unsqueeze(-1))
         terminated = resample(terminated.unsqueeze(-1)).to(obs.dtype)
-        mean, logvar = wm.predict_transition(obs, action)
-        target = wm.target_delta(obs, nxt)
-        transition_nll = gaussian_nll(mean, logvar, target).mean((2, 3))  # [S, N]
-        transition_mse = (mean - target).pow(2).mean((2, 3))
-        r_mean, r_logvar = wm.predict_reward(obs, action, nxt)
-        r_target = wm.reward_norm.normalize(reward)
-        reward_nll = gaussian_nll(r_mean, r_logvar, r_target).mean((2, 3))
-        reward_mse = (r_mean - r_target).pow(2).mean((2, 3))
-        logits = wm.termination_logits(nxt)
-        bce = F.binary_cross_entropy_with_logits(logits, terminated, reduction="none")
-        termination_bce = bce.mean((2, 3))
-        c = loss0.logvar_bound_coeff
-        loss_transition = transition_nll.sum(1) + c * wm.bound_penalty(wm.transition)
-        loss_reward = loss0.reward_coeff * (
-            reward_nll.sum(1) + c * wm.bound_penalty(wm.reward_model)
+        out = world_model_loss_terms(
+            wm.predict_transition(obs, action),
+            wm.target_delta(obs, nxt),
+            wm.predict_reward(obs, action, nxt),
+            wm.reward_norm.normalize(reward),
+            wm.termination_logits(nxt),
+            terminated,
+            (wm.bound_penalty(wm.transition), wm.bound_penalty(wm.reward_model)),
+            reward_coeff=loss0.reward_coeff,
+            termination_coeff=loss0.termination_coeff,
+            logvar_bound_coeff=loss0.logvar_bound_coeff,
         )
-        loss_termination = loss0.termination_coeff * termination_bce.sum(1)
         self.wm_optimizer.zero_grad()
-        (loss_transition + loss_reward + loss_termination).sum().backward()
+        (out["loss_transition"] + out["loss_reward"] + out["loss_termination"]).sum().backward()
         self.wm_optimizer.step()
-        with torch.no_grad():
-            hit = ((logits > 0).to(terminated.dtype) == terminated).to(obs.dtype)
-        return TensorDict(
-            {
-                "loss_transition": loss_transition.detach(),
-                "loss_reward": loss_reward.detach(),
-                "loss_termination": loss_termination.detach(),
-                "transition_nll": transition_nll.detach().mean(1),
-                "transition_mse": transition_mse.detach().mean(1),
-                "reward_nll": reward_nll.detach().mean(1),
-                "reward_mse": reward_mse.detach().mean(1),
-                "termination_bce": termination_bce.detach().mean(1),
-                "termination_accuracy": hit.mean((1, 2, 3)),
-            },
-            batch_size=[S],
-        )
+        return TensorDict({k: v.detach() for k, v in out.items()}, batch_size=[S])
 
     # ------------------------------------------------------------- checkpoints
     def optimizers(self) -> dict[str, torch.optim.Optimizer]:
