@@ -201,6 +201,58 @@ class TestRollout:
         assert actions.shape == (2, 3, 3, 1)
 
 
+class TestValueExpansionTarget:
+    @pytest.mark.parametrize("mix", ["inverse_variance", "fixed"])
+    def test_seed_dimensions_equal_each_seed_alone(self, mix):
+        """``value_expansion_target`` with a leading seed dimension (callables that take
+        it) gives each seed what the seed's own callables give without it."""
+        torch.manual_seed(0)
+        S, N, K, M, D, A, H = 3, 2, 2, 4, 2, 1, 2
+        Wp, Wt = torch.randn(S, D, A), torch.randn(S, N, D + A, D) * 0.3
+        Wr, Wd, Wq = torch.randn(S, N, 2 * D + A), torch.randn(S, N, D), torch.randn(S, K, D + A)
+
+        def nets(s):  # seed s's networks, for inputs without the seed; s=None: all seeds
+            def pick(w):
+                return w if s is None else w[s]
+
+            lead = 1 if s is None else 0
+
+            def policy(x):
+                w = pick(Wp)
+                return torch.tanh(
+                    x @ (w if s is not None else w.view(S, *[1] * (x.dim() - 3), D, A))
+                )
+
+            def step(x, a, per_member):  # [*L, M, D] shared or [*L, N, M, D]
+                xa = torch.cat([x, a], -1)
+                if not per_member:  # one copy for the members: [*L, 1, M, .]
+                    x, xa = x.unsqueeze(-3), xa.unsqueeze(-3)
+                return x + xa @ pick(Wt)
+
+            def imagined_reward(x, a, x2):  # [*L, Ni, M, H, .] -> [*L, Nj, Ni, M, H]
+                z = torch.cat([x, a, x2], -1).unsqueeze(-5)  # a reward member axis
+                w = pick(Wr).view(*[S] * lead, N, 1, 1, 1, 2 * D + A)
+                return (z * w).sum(-1)
+
+            def termination_prob(x2):  # [*L, Ni, M, H, D] -> [*L, Ni, M, H]
+                return torch.sigmoid((x2 * pick(Wd).view(*[S] * lead, N, 1, 1, D)).sum(-1))
+
+            def critic(x, a):  # [*L, R, .] -> [*L, K, R]
+                return (torch.cat([x, a], -1) @ pick(Wq).mT).mT
+
+            return dict(policy=policy, step=step, imagined_reward=imagined_reward,
+                        termination_prob=termination_prob, critic=critic)  # fmt: skip
+
+        nxt, reward = torch.randn(S, M, D), torch.randn(S, M)
+        terminated = torch.tensor([[False, True, False, False]] * S)
+        common = dict(num_members=N, horizon=H, gamma=0.9, mix=mix, alpha=0.5)
+        group = VF.value_expansion_target(nxt, reward, terminated, **nets(None), **common)
+        for s in range(S):
+            alone = VF.value_expansion_target(nxt[s], reward[s], terminated[s], **nets(s), **common)
+            for got, want in zip(group, alone, strict=True):
+                torch.testing.assert_close(got[s], want)
+
+
 class TestLayouts:
     """Inputs off the documented layouts are named, not broadcast. TorchRL's ``[B, 1]``
     reward and done entries broadcast without an error where sizes happen to match: with

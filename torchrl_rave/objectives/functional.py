@@ -37,6 +37,7 @@ __all__ = [
     "inverse_variance_weights",
     "confidence_lower_bound",
     "expansion_target",
+    "value_expansion_target",
     "adaptive_alpha",
 ]
 
@@ -76,19 +77,21 @@ def imagined_rollout(
     """Rolls every transition member ``horizon`` steps from the real next state (eq. 8).
 
     Member ``i`` starts from ``s_{t+1}`` (shared), acts with the target policy and moves
-    with its own model: ``a~ = pi'(s~)``, ``s~' = step_i(s~, a~)``.
+    with its own model: ``a~ = pi'(s~)``, ``s~' = step_i(s~, a~)``. Any leading dimensions
+    ``*L`` of ``obs`` (a seed group's seed) lead every tensor.
 
     Args:
-        obs (Tensor): real next observations ``s_{t+1}``, ``[M, S]``.
-        policy (Callable): ``[*, S] -> [*, A]``.
-        step (Callable): ``(obs, action, per_member) -> [N, M, S]``; ``per_member=False``
-            means the inputs are shared by all members.
+        obs (Tensor): real next observations ``s_{t+1}``, ``[*L, M, S]``.
+        policy (Callable): ``[*L, *, S] -> [*L, *, A]``.
+        step (Callable): ``(obs, action, per_member) -> [*L, N, M, S]``;
+            ``per_member=False`` means the inputs (``[*L, M, .]``) are shared by all
+            members, ``True`` that they are ``[*L, N, M, .]``.
         num_members (int): ``N``.
         horizon (int): ``H_max``.
 
     Returns:
-        states ``[N, M, H_max + 1, S]`` and actions ``[N, M, H_max + 1, A]``; index 0 is
-        ``(s_{t+1}, pi'(s_{t+1}))`` for every member.
+        states ``[*L, N, M, H_max + 1, S]`` and actions ``[*L, N, M, H_max + 1, A]``;
+        index 0 is ``(s_{t+1}, pi'(s_{t+1}))`` for every member.
 
     Examples:
         >>> policy = lambda s: torch.ones_like(s)
@@ -102,8 +105,11 @@ def imagined_rollout(
     if isinstance(num_members, bool) or int(num_members) != num_members or num_members < 1:
         raise ValueError(f"imagined_rollout: num_members={num_members!r} must be an integer >= 1")
     action = policy(obs)
-    states = [obs.expand(num_members, *obs.shape)]
-    actions = [action.expand(num_members, *action.shape)]
+
+    def shared(x):  # [*L, M, F] -> every member's [*L, N, M, F]
+        return x.unsqueeze(-3).expand(*x.shape[:-2], num_members, *x.shape[-2:])
+
+    states, actions = [shared(obs)], [shared(action)]
     s, a = obs, action
     for h in range(horizon):
         s = step(s, a, h > 0)
@@ -315,6 +321,89 @@ def expansion_target(
     else:
         raise ValueError(f"mix must be 'inverse_variance' or 'fixed', got {mix!r}")
     return (weights * clb).sum(-1), weights
+
+
+def value_expansion_target(
+    next_obs: torch.Tensor,
+    reward: torch.Tensor,
+    terminated: torch.Tensor,
+    *,
+    policy: Callable[[torch.Tensor], torch.Tensor],
+    step: Callable[[torch.Tensor, torch.Tensor, bool], torch.Tensor],
+    imagined_reward: Callable[[torch.Tensor, torch.Tensor, torch.Tensor], torch.Tensor],
+    termination_prob: Callable[[torch.Tensor], torch.Tensor],
+    critic: Callable[[torch.Tensor, torch.Tensor], torch.Tensor],
+    num_members: int,
+    horizon: int,
+    gamma: torch.Tensor | float,
+    mix: Literal["inverse_variance", "fixed"],
+    alpha: torch.Tensor | float = 0.0,
+    eps: float = 1e-8,
+    moments: Callable[[torch.Tensor], tuple[torch.Tensor, torch.Tensor]] = horizon_moments,
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """The MVE / STEVE / RAVE target of a batch, from the networks as callables: the rollout
+    (:func:`imagined_rollout`), every reward member on every transition member's steps, the
+    termination probabilities, the critics on every imagined state (the real next state
+    once), then the candidates, their moments and the mix (eqs. 5, 6, 9-11).
+
+    Every tensor may carry leading dimensions ``*L`` (none for one learner; a seed group's
+    seed), which lead the callables' inputs and outputs too; the functions above see them
+    as batch dimensions beside ``M``.
+
+    Args:
+        next_obs (Tensor): ``s_{t+1}``, ``[*L, M, S]``.
+        reward (Tensor): ``r_t``, ``[*L, M]``.
+        terminated (Tensor): whether ``s_{t+1}`` is terminal, ``[*L, M]``.
+
+    Keyword Args:
+        policy, step: as :func:`imagined_rollout` takes them.
+        imagined_reward (Callable): ``(s, a, s') -> [*L, Nj, Ni, M, H_max]`` for inputs
+            ``[*L, Ni, M, H_max, .]``: each reward member on every transition member's steps.
+        termination_prob (Callable): ``s' [*L, Ni, M, H_max, S] -> [*L, Ni, M, H_max]``,
+            each member's own termination model on its states.
+        critic (Callable): ``(s, a) [*L, R, .] -> [*L, K, R]``, the K target critics.
+        num_members (int), horizon (int): ``N`` and ``H_max``.
+        gamma, mix, alpha, eps: as :func:`candidate_targets` and :func:`expansion_target`
+            take them (``alpha``: a scalar or ``[*L, M]``).
+        moments (Callable): the moments of the candidates; :func:`horizon_moments`.
+
+    Returns:
+        ``(target [*L, M], var [*L, M, H_max + 1], weights [*L, M, H_max + 1])``.
+
+    Examples:
+        >>> out = value_expansion_target(
+        ...     torch.zeros(3, 1), torch.ones(3), torch.zeros(3, dtype=torch.bool),
+        ...     policy=torch.zeros_like, step=lambda s, a, per_member: s.new_zeros(2, 3, 1),
+        ...     imagined_reward=lambda s, a, s2: s.new_ones(2, *s.shape[:-1]),
+        ...     termination_prob=lambda s2: s2.new_zeros(s2.shape[:-1]),
+        ...     critic=lambda s, a: s.new_zeros(2, s.shape[0]),
+        ...     num_members=2, horizon=1, gamma=0.5, mix="fixed")
+        >>> out[0]  # r_t + gamma * r~_{t+1}, both 1, the critics 0
+        tensor([1.5000, 1.5000, 1.5000])
+    """
+    N, H = num_members, horizon
+    lead, (M, D) = next_obs.shape[:-2], next_obs.shape[-2:]
+    n = len(lead)
+    states, actions = imagined_rollout(next_obs, policy, step, N, H)  # [*L, N, M, H+1, F]
+    A = actions.shape[-1]
+    rewards = imagined_reward(states[..., :-1, :], actions[..., :-1, :], states[..., 1:, :])
+    done_prob = termination_prob(states[..., 1:, :])  # [*L, Ni, M, H]
+    # Horizon 0 is the same real state for every member: evaluate it once.
+    flat_s = torch.cat([states[..., 0, :, 0, :], states[..., 1:, :].reshape(*lead, -1, D)], -2)
+    flat_a = torch.cat([actions[..., 0, :, 0, :], actions[..., 1:, :].reshape(*lead, -1, A)], -2)
+    q = critic(flat_s, flat_a)  # [*L, K, M + N*M*H]
+    K = q.shape[-2]
+    q0 = q[..., :M].reshape(*lead, K, 1, M, 1).expand(*lead, K, N, M, 1)
+    values = torch.cat([q0, q[..., M:].reshape(*lead, K, N, M, H)], -1)  # [*L, K, Ni, M, H+1]
+    # the layouts of the functions above: the ensemble dimensions first, *L with the batch
+    continuation = continuation_weights(terminated, done_prob.movedim(n, 0))
+    candidates = candidate_targets(
+        reward, rewards.movedim((n + 1, n), (0, 1)), values.movedim((n + 1, n), (0, 1)),
+        continuation, gamma,
+    )  # fmt: skip
+    mean, var = moments(candidates)
+    target, weights = expansion_target(mean, var, mix=mix, alpha=alpha, horizon=H, eps=eps)
+    return target, var, weights
 
 
 def check_alpha_parameters(alpha, alpha_error_scale) -> tuple[float, float]:

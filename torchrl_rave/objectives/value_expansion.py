@@ -444,33 +444,21 @@ class ValueExpansionEstimator(ValueEstimatorBase):
         def policy(s):
             return nets.policy(s, actor_params, keys)
 
-        states, actions = VF.imagined_rollout(next_obs, policy, step, N, H)
-        # states/actions: [N, M, H+1, F]
+        def imagined_reward(s, a, s2):  # [Nj, Ni, M, H]: shared inputs, every reward member
+            return wm.reward(s, a, s2, sample=sample).squeeze(-1)
 
-        # Reward members score every transition member's steps: [Nj, Ni, M, H].
-        rewards = wm.reward(
-            states[:, :, :-1], actions[:, :, :-1], states[:, :, 1:], sample=sample
-        ).squeeze(-1)
-        done_prob = wm.termination_prob(states[:, :, 1:], per_member=True).squeeze(-1)  # [Ni, M, H]
+        def termination_prob(s2):  # [Ni, M, H]: each member's own
+            return wm.termination_prob(s2, per_member=True).squeeze(-1)
 
-        # Horizon 0 is the same real state for every member: evaluate it once.
-        flat_s = torch.cat([states[0, :, 0], states[:, :, 1:].reshape(-1, S)])
-        flat_a = torch.cat([actions[0, :, 0], actions[:, :, 1:].reshape(-1, A)])
-        q = nets.critic(flat_s, flat_a, value_params, keys)  # [K, M + N*M*H]
-        K = q.shape[0]
-        q0 = q[:, :M].reshape(K, 1, M, 1).expand(K, N, M, 1)
-        values = torch.cat([q0, q[:, M:].reshape(K, N, M, H)], -1).transpose(
-            0, 1
-        )  # [Ni, K, M, H+1]
+        def critic(s, a):  # [K, R]
+            return nets.critic(s, a, value_params, keys)
 
-        continuation = VF.continuation_weights(terminated, done_prob)
-        candidates = VF.candidate_targets(
-            reward, rewards.transpose(0, 1), values, continuation, self.gamma
-        )
-        mean, var = VF.horizon_moments(candidates)
-        target, weights = VF.expansion_target(
-            mean, var, mix=self.mix, alpha=alpha, horizon=H, eps=self.variance_eps
-        )
+        target, var, weights = VF.value_expansion_target(
+            next_obs, reward, terminated, policy=policy, step=step,
+            imagined_reward=imagined_reward, termination_prob=termination_prob, critic=critic,
+            num_members=N, horizon=H, gamma=self.gamma, mix=self.mix, alpha=alpha,
+            eps=self.variance_eps,
+        )  # fmt: skip
 
         diagnostics = TensorDict(
             {

@@ -792,42 +792,30 @@ class SeedGroup:
             alpha = VF.adaptive_alpha(err, self.alpha, self.alpha_error_scale)  # [S, M]
         else:
             alpha = self.alpha
-        a = self._policy(self.target_actor, nxt)
-        states = [nxt.unsqueeze(1).expand(S, N, M, D)]
-        actions = [a.unsqueeze(1).expand(S, N, *a.shape[1:])]
-        s = nxt
-        for _ in range(H):
-            s = wm.step(s, a, sample)  # [S, N, M, D]
-            a = self._policy(self.target_actor, s)
-            states.append(s)
-            actions.append(a)
-        states, actions = torch.stack(states, -2), torch.stack(actions, -2)  # [S, N, M, H+1, F]
-        A = actions.shape[-1]
 
-        def rows(x, width):  # [S, N, M, H, F] -> [S, N*M*H, F]
-            return x.reshape(S, -1, width)
+        def policy(s):
+            return self._policy(self.target_actor, s)
 
-        # the functional layouts put the seed with the batch: [Ni, Nj, K, S, M, H+1]
-        r = wm.reward(
-            rows(states[..., :-1, :], D), rows(actions[..., :-1, :], A),
-            rows(states[..., 1:, :], D), sample,
-        )  # [S, Nj, Ni*M*H, 1]  # fmt: skip
-        rewards = r.view(S, N, N, M, H).permute(2, 1, 0, 3, 4)  # [Ni, Nj, S, M, H]
-        logits = wm.termination_logits(states[..., 1:, :].reshape(S, N, M * H, D))
-        done_prob = torch.sigmoid(logits).view(S, N, M, H).transpose(0, 1)  # [Ni, S, M, H]
-        flat_s = torch.cat([states[:, 0, :, 0], rows(states[..., 1:, :], D)], 1)
-        flat_a = torch.cat([actions[:, 0, :, 0], rows(actions[..., 1:, :], A)], 1)
-        q = self._q(self.target_critic, flat_s, flat_a)  # [S, K, M + N*M*H]
-        K = q.shape[1]
-        q0 = q[:, :, :M].reshape(S, K, 1, M, 1).expand(S, K, N, M, 1)
-        rest = q[:, :, M:].reshape(S, K, N, M, H)
-        values = torch.cat([q0, rest], -1).permute(2, 1, 0, 3, 4)  # [Ni, K, S, M, H+1]
-        continuation = VF.continuation_weights(terminated, done_prob)
-        candidates = VF.candidate_targets(reward, rewards, values, continuation, self.gamma)
-        mean, var = _horizon_moments(candidates)
-        target, weights = VF.expansion_target(
-            mean, var, mix=self.mix, alpha=alpha, horizon=H, eps=self.variance_eps
-        )
+        def step(s, a, per_member):  # [S, M, D] shared by the members, or [S, N, M, D]
+            return wm.step(s, a, sample)
+
+        def imagined_reward(s, a, s2):  # [S, Nj, Ni, M, H], one [S, Ni*M*H] batch per seed
+            A = a.shape[-1]
+            r = wm.reward(s.reshape(S, -1, D), a.reshape(S, -1, A), s2.reshape(S, -1, D), sample)
+            return r.view(S, N, N, M, H)
+
+        def termination_prob(s2):  # [S, Ni, M, H]
+            return torch.sigmoid(wm.termination_logits(s2.reshape(S, N, M * H, D))).view(S, N, M, H)
+
+        def critic(s, a):  # [S, K, R]
+            return self._q(self.target_critic, s, a)
+
+        target, var, weights = VF.value_expansion_target(
+            nxt, reward, terminated, policy=policy, step=step, imagined_reward=imagined_reward,
+            termination_prob=termination_prob, critic=critic, num_members=N, horizon=H,
+            gamma=self.gamma, mix=self.mix, alpha=alpha, eps=self.variance_eps,
+            moments=_horizon_moments,
+        )  # fmt: skip
         keys = self.diagnostic_keys
         diagnostics = {
             keys.alpha: alpha.expand(S, M).unsqueeze(-1),
