@@ -11,7 +11,11 @@ from torchrl_rave.objectives.value_expansion import (
     ValueExpansionEstimator,
     make_value_expansion_estimator,
 )
-from torchrl_rave.objectives.world_model_loss import WorldModelEnsembleLoss, gaussian_nll
+from torchrl_rave.objectives.world_model_loss import (
+    WorldModelEnsembleLoss,
+    gaussian_nll,
+    world_model_loss_terms,
+)
 
 __all__ = [
     "functional",
@@ -25,4 +29,5 @@ __all__ = [
     "WorldModelEnsembleLoss",
     "gaussian_nll",
     "make_value_expansion_estimator",
+    "world_model_loss_terms",
 ]
