@@ -1,6 +1,11 @@
 """TensorDict modules: the probabilistic world-model ensemble and its building blocks."""
 
-from torchrl_rave.modules.ensemble import EnsembleLinear, EnsembleMLP, GaussianEnsembleMLP
+from torchrl_rave.modules.ensemble import (
+    EnsembleLinear,
+    EnsembleMLP,
+    GaussianEnsembleMLP,
+    ensemble_affine,
+)
 from torchrl_rave.modules.exploration import EpsilonGaussianModule
 from torchrl_rave.modules.normalizer import RunningNormalizer
 from torchrl_rave.modules.tensor_call import TensorCall
@@ -14,4 +19,5 @@ __all__ = [
     "RunningNormalizer",
     "TensorCall",
     "WorldModelEnsemble",
+    "ensemble_affine",
 ]

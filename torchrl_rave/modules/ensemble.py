@@ -34,6 +34,35 @@ def inplace_activation(activation: nn.Module):
 _INPLACE = {nn.ReLU: torch.relu_, nn.Tanh: torch.tanh_, nn.Sigmoid: torch.sigmoid_}
 
 
+def ensemble_affine(
+    x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor | None
+) -> torch.Tensor:
+    """``x @ weight + bias`` for ``E`` stacked affine maps in one kernel: the executor that
+    every ensemble in this package evaluates its layers with (:class:`EnsembleLinear`,
+    :class:`~torchrl_rave.modules.TensorCall`'s stacked critics, a
+    :class:`~torchrl_rave.trainers.SeedGroup`'s ``S x E`` maps).
+
+    Args:
+        x (Tensor): ``[M, in]``, the same rows for every map (*shared*), or ``[E, M, in]``,
+            map ``e`` reading block ``e``.
+        weight (Tensor): ``[E, in, out]`` (any strides: a transposed view of ``nn.Linear``'s
+            ``[E, out, in]`` is read as it is).
+        bias (Tensor, optional): ``[E, 1, out]``.
+
+    Returns:
+        ``[E, M, out]``.
+
+    Examples:
+        >>> x, w, b = torch.ones(2, 3), torch.ones(4, 3, 5), torch.zeros(4, 1, 5)
+        >>> ensemble_affine(x, w, b).shape
+        torch.Size([4, 2, 5])
+    """
+    if x.dim() == 2:  # [M, in] @ [E, in, out] broadcasts to [E, M, out] in one kernel
+        out = torch.matmul(x, weight)
+        return out if bias is None else out + bias
+    return torch.bmm(x, weight) if bias is None else torch.baddbmm(bias, x, weight)
+
+
 def _check_layout(x: torch.Tensor, num_members: int, in_features: int, per_member: bool) -> None:
     if x.shape[-1] != in_features:
         raise ValueError(
@@ -109,17 +138,13 @@ class EnsembleLinear(nn.Module):
             per_member and (x.dim() != 3 or x.shape[0] != self.num_members)
         ):
             _check_layout(x, self.num_members, self.in_features, per_member)
-        return self._affine(x, per_member)
+        return self._affine(x)
 
-    def _affine(self, x: torch.Tensor, per_member: bool) -> torch.Tensor:
+    def _affine(self, x: torch.Tensor) -> torch.Tensor:
         """:meth:`forward` without its input check: the ensemble MLPs check their input
         once and call their layers through this, so the update step pays no check per
         layer."""
-        w = self._matmul_weight()
-        if per_member:
-            return torch.baddbmm(self.bias, x, w)
-        # [M, in] @ [N, in, out] broadcasts to [N, M, out] in one kernel.
-        return torch.matmul(x, w) + self.bias
+        return ensemble_affine(x, self._matmul_weight(), self.bias)
 
     def extra_repr(self) -> str:
         return f"num_members={self.num_members}, in_features={self.in_features}, out_features={self.out_features}"
@@ -172,7 +197,7 @@ class EnsembleMLP(nn.Module):
         _check_layout(x, self.num_members, self.in_features, per_member)
         for n, layer in enumerate(self.layers):
             # after the first layer every member has its own rows
-            x = layer._affine(x, per_member or n > 0)
+            x = layer._affine(x)
             if n < len(self.layers) - 1:
                 x = self.activate(x)
         return x
@@ -243,8 +268,8 @@ class GaussianEnsembleMLP(nn.Module):
         self, x: torch.Tensor, per_member: bool = False
     ) -> tuple[torch.Tensor, torch.Tensor]:
         h = self.trunk.activate(self.trunk(x, per_member=per_member))
-        mean = self.mean_head._affine(h, True)  # h is the trunk's own output
-        raw = self.logvar_head._affine(h, True)
+        mean = self.mean_head._affine(h)  # h is the trunk's own output
+        raw = self.logvar_head._affine(h)
         logvar = self.max_logvar - F.softplus(self.max_logvar - raw)
         logvar = self.min_logvar + F.softplus(logvar - self.min_logvar)
         return mean, logvar

@@ -37,7 +37,7 @@ from torch import nn
 from torch.nn import functional as F
 from torchrl.modules import MLP, TanhModule
 
-from torchrl_rave.modules.ensemble import inplace_activation
+from torchrl_rave.modules.ensemble import ensemble_affine, inplace_activation
 
 __all__ = ["PlannedCalls", "TensorCall"]
 
@@ -81,14 +81,11 @@ def _linear_layers(module: nn.Module, prefix: tuple[str, ...] = ()) -> list | No
 
 
 def _stacked_linear(x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor | None):
-    """``x @ W^T + b`` for ``K`` stacked layers: ``x`` is ``[M, F]`` (shared) or ``[K, M, F]``."""
-    wt = weight.transpose(-1, -2)
-    if x.dim() == 2:
-        out = torch.matmul(x, wt)  # [M, F] @ [K, F, F'] broadcasts to [K, M, F']
-        return out if bias is None else out + bias.unsqueeze(-2)
-    if bias is None:
-        return torch.bmm(x, wt)
-    return torch.baddbmm(bias.unsqueeze(-2), x, wt)
+    """``x @ W^T + b`` for ``K`` stacked ``nn.Linear`` layers (``[K, out, in]``): ``x`` is
+    ``[M, F]`` (shared) or ``[K, M, F]``."""
+    return ensemble_affine(
+        x, weight.transpose(-1, -2), None if bias is None else bias.unsqueeze(-2)
+    )
 
 
 def _leaf(params: TensorDictBase, key: tuple[str, ...], flat: str) -> torch.Tensor:

@@ -59,7 +59,12 @@ from torch.distributions.utils import _sum_rightmost
 from torch.nn import functional as F
 from torchrl.objectives import SACLoss, TD3Loss
 
-from torchrl_rave.modules.ensemble import EnsembleLinear, EnsembleMLP, inplace_activation
+from torchrl_rave.modules.ensemble import (
+    EnsembleLinear,
+    EnsembleMLP,
+    ensemble_affine,
+    inplace_activation,
+)
 from torchrl_rave.modules.tensor_call import TensorCall, _leaf, _linear_layers
 from torchrl_rave.objectives import functional as VF
 from torchrl_rave.objectives.ensemble_ddpg import EnsembleDDPGLoss
@@ -160,7 +165,7 @@ class _Linear:
         if b is not None:
             b = b.reshape(-1, 1, fan_out)
         if owed is not None:  # (x + owed) w + b = x w + (owed w + b)
-            b = torch.bmm(owed, w) if b is None else torch.baddbmm(b, owed, w)
+            b = ensemble_affine(owed, w, b)
         large = x.shape[0] * rows * fan_out > _LARGE
         if (
             large
@@ -175,15 +180,13 @@ class _Linear:
             # learner makes (nn.Linear's, as TensorCall makes for one member); BLAS need
             # not round a batch of one as it rounds that call, and on some CPUs does not
             y = F.linear(x[0], w[0].mT, None if b is None else b.reshape(fan_out))
-        elif b is None:
-            y = torch.bmm(x, w)
-        elif large:
+        elif large and b is not None:
             # an output larger than the caches: baddbmm first writes the bias over all of
             # it and BLAS then reads it back; the product, then the bias added in place,
             # spares one pass (a RAVE target layer at S = 8: 6.6 -> 5.5 ms at 1 thread)
             y = torch.bmm(x, w).add_(b)
         else:
-            y = torch.baddbmm(b, x, w)
+            y = ensemble_affine(x, w, b)  # the S x E maps of [S * E, rows, in] in one kernel
         if self.activation is not None:
             # on the product itself, before the view: an in-place op on a view makes
             # autograd rebase it (CopySlices), whose backward clones and zero-fills the
