@@ -37,14 +37,13 @@ from __future__ import annotations
 
 import argparse
 import time
-from collections import Counter, defaultdict
+from collections import defaultdict
 
 import torch
 from cli_types import count
 from torch.nn import functional as F
 from torch.profiler import ProfilerActivity, profile
-from torch.utils._python_dispatch import TorchDispatchMode
-from update_throughput import Case, batches, measure, recipe_update, record_matmuls
+from update_throughput import Case, CountOps, batches, measure, recipe_update, record_matmuls
 
 from torchrl_rave.recipe.memory import keep_freed_memory
 
@@ -82,19 +81,9 @@ def matmul_table(run, steps: int, rows: int) -> str:
     return "\n".join(lines)
 
 
-class _CountOps(TorchDispatchMode):
-    def __init__(self) -> None:
-        super().__init__()
-        self.counts: Counter[str] = Counter()
-
-    def __torch_dispatch__(self, func, types, args=(), kwargs=None):
-        self.counts[str(func.overloadpacket)] += 1
-        return func(*args, **(kwargs or {}))
-
-
 def op_table(run, steps: int, rows: int) -> str:
     """``run()`` under a dispatch mode that counts ATen calls: calls per step by operator."""
-    with _CountOps() as mode:
+    with CountOps() as mode:
         run()
     total = sum(mode.counts.values()) / steps
     lines = [f"ATen calls: {total:.0f} per step", "", f"{'calls/step':>10}  operator"]

@@ -51,11 +51,11 @@ from pathlib import Path
 
 import torch
 from cli_types import count
-from profile_update import _CountOps
 from provenance import provenance
 from tensordict import TensorDict
 from update_throughput import (
     Case,
+    CountOps,
     batches,
     matmul_peak,
     measure,
@@ -126,7 +126,7 @@ def group_case(algorithm: str, S: int, device) -> tuple[Case, SeedGroup]:
 
 def aten_calls(case: Case, steps: int = 3) -> float:
     case.step()  # lazily built state (optimiser moments) out of the count
-    with _CountOps() as mode:
+    with CountOps() as mode:
         for _ in range(steps):
             case.step()
     return sum(mode.counts.values()) / steps

@@ -41,6 +41,7 @@ import os
 import platform
 import statistics
 import time
+from collections import Counter
 from collections.abc import Callable
 from pathlib import Path
 
@@ -756,3 +757,15 @@ def main(argv=None) -> dict:
 
 if __name__ == "__main__":
     main()
+
+
+class CountOps(TorchDispatchMode):
+    """Counts the ATen calls made under it, by operator (``counts``)."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.counts: Counter[str] = Counter()
+
+    def __torch_dispatch__(self, func, types, args=(), kwargs=None):
+        self.counts[str(func.overloadpacket)] += 1
+        return func(*args, **(kwargs or {}))
