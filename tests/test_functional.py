@@ -253,6 +253,124 @@ class TestValueExpansionTarget:
                 torch.testing.assert_close(got[s], want)
 
 
+class TestSoftTarget:
+    """A stochastic policy's soft value-expansion target against a float64 loop by hand."""
+
+    N, K, M, D, A = 3, 2, 4, 2, 1
+
+    def networks(self):
+        g = torch.Generator().manual_seed(0)
+
+        def rand(*shape):
+            return torch.randn(*shape, generator=g, dtype=torch.float64)
+
+        N, K, D, A = self.N, self.K, self.D, self.A
+        Wp, Wt, Wr = rand(D, A), rand(N, D + A, D) * 0.3, rand(N, 2 * D + A)
+        Wd, Wq = rand(N, D), rand(K, D + A)
+
+        def policy(s):  # a sampled action and its log-probability, any leading dims
+            return torch.tanh(s @ Wp), -0.1 * s.pow(2).sum(-1)
+
+        def step(s, a, per_member):
+            xa = torch.cat([s, a], -1)
+            if not per_member:
+                s, xa = s.unsqueeze(0), xa.unsqueeze(0)
+            return s + torch.tanh(xa @ Wt)
+
+        def imagined_reward(s, a, s2):  # [Ni, M, H, .] -> [Nj, Ni, M, H]
+            return torch.einsum("imhf,jf->jimh", torch.cat([s, a, s2], -1), Wr)
+
+        def termination_prob(s2):  # [Ni, M, H, D] -> [Ni, M, H]
+            return torch.sigmoid(torch.einsum("imhd,id->imh", s2, Wd))
+
+        def critic(s, a):  # [R, .] -> [K, R]
+            return (torch.cat([s, a], -1) @ Wq.mT).mT
+
+        calls = dict(policy=policy, step=step, imagined_reward=imagined_reward,
+                     termination_prob=termination_prob, critic=critic)  # fmt: skip
+        return calls, (Wt, Wr, Wd, Wq)
+
+    def by_hand(self, nets, weights, nxt, reward, terminated, H, gamma, temp, alpha):
+        """Every candidate T_H(i, j, k) by loops, then the moments and the RAVE mix."""
+        policy = nets["policy"]
+        Wt, Wr, Wd, Wq = weights
+        N, K, M = self.N, self.K, self.M
+        targets = []
+        for b in range(M):
+            cands = [[] for _ in range(H + 1)]
+            for i in range(N):
+                s, traj = nxt[b], []
+                for _ in range(H + 1):
+                    a, lp = policy(s)
+                    traj.append((s, a, lp))
+                    s = s + torch.tanh(torch.cat([s, a]) @ Wt[i])
+                for j in range(N):
+                    for k in range(K):
+                        for h_max in range(H + 1):
+                            total, c = reward[b].clone(), 1.0 - float(terminated[b])
+                            for h in range(1, h_max + 2):  # steps t+1 .. t+H+1
+                                if h > 1:  # c_{t,t+h} = c_{t,t+h-1} (1 - p_i(s~_{t+h}))
+                                    c = c * (1 - torch.sigmoid(traj[h - 1][0] @ Wd[i]))
+                                s_h, a_h, lp_h = traj[h - 1]
+                                if h <= h_max:  # an imagined reward and its entropy bonus
+                                    r = torch.cat([s_h, a_h, traj[h][0]]) @ Wr[j]
+                                    total = total + gamma**h * c * (r - temp * lp_h)
+                                else:  # the bootstrap, soft
+                                    q = torch.cat([s_h, a_h]) @ Wq[k]
+                                    total = total + gamma**h * c * (q - temp * lp_h)
+                            cands[h_max].append(total)
+            T = torch.stack([torch.stack(c) for c in cands])  # [H+1, N*N*K]
+            mean, var = T.mean(1), T.var(1, correction=0)
+            w = 1 / (var + 1e-8)
+            targets.append(((mean - alpha * var.sqrt()) * w).sum() / w.sum())
+        return torch.stack(targets)
+
+    @pytest.mark.parametrize("H", [0, 1, 3])
+    def test_equals_a_loop_by_hand(self, H):
+        nets, weights = self.networks()
+        g = torch.Generator().manual_seed(1)
+        nxt = torch.randn(self.M, self.D, generator=g, dtype=torch.float64)
+        reward = torch.randn(self.M, generator=g, dtype=torch.float64)
+        terminated = torch.tensor([False, True, False, False])
+        target, _, _ = VF.value_expansion_target(
+            nxt, reward, terminated, **nets, num_members=self.N, horizon=H, gamma=0.9,
+            mix="inverse_variance", alpha=0.5, temperature=0.2,
+        )  # fmt: skip
+        want = self.by_hand(nets, weights, nxt, reward, terminated, H, 0.9, 0.2, 0.5)
+        torch.testing.assert_close(target, want)
+
+    def test_horizon_zero_is_sacs_soft_td0_target(self):
+        """``H = 0`` with one critic (the minimum SAC takes) is ``r + gamma (1 - d)
+        (Q'(s', a') - temperature log pi(a' | s'))``, a' drawn at s'."""
+        nets, (_, _, _, Wq) = self.networks()
+        nets["critic"] = lambda s, a: (torch.cat([s, a], -1) @ Wq.mT).mT.min(0, keepdim=True)[0]
+        nxt = torch.randn(self.M, self.D, dtype=torch.float64)
+        reward = torch.randn(self.M, dtype=torch.float64)
+        terminated = torch.tensor([False, True, False, True])
+        target, var, _ = VF.value_expansion_target(
+            nxt, reward, terminated, **nets, num_members=self.N, horizon=0, gamma=0.9,
+            mix="fixed", temperature=0.2,
+        )  # fmt: skip
+        a, log_pi = nets["policy"](nxt)
+        q = (torch.cat([nxt, a], -1) @ Wq.mT).min(-1)[0]
+        torch.testing.assert_close(target, reward + 0.9 * (~terminated) * (q - 0.2 * log_pi))
+        assert torch.all(var == 0)
+
+    def test_temperature_zero_or_none_is_the_deterministic_target(self):
+        nets, _ = self.networks()
+        nxt, reward = torch.randn(self.M, self.D, dtype=torch.float64), torch.zeros(self.M)
+        terminated = torch.zeros(self.M, dtype=torch.bool)
+        common = dict(num_members=self.N, horizon=2, gamma=0.9, mix="inverse_variance")
+        soft = VF.value_expansion_target(
+            nxt, reward.double(), terminated, **nets, **common, temperature=0.0
+        )[0]
+        policy = nets.pop("policy")
+        plain = VF.value_expansion_target(
+            nxt, reward.double(), terminated, policy=lambda s: policy(s)[0], **nets, **common
+        )[0]
+        torch.testing.assert_close(soft, plain)
+
+
 class TestLayouts:
     """Inputs off the documented layouts are named, not broadcast. TorchRL's ``[B, 1]``
     reward and done entries broadcast without an error where sizes happen to match: with

@@ -340,6 +340,7 @@ def value_expansion_target(
     alpha: torch.Tensor | float = 0.0,
     eps: float = 1e-8,
     moments: Callable[[torch.Tensor], tuple[torch.Tensor, torch.Tensor]] = horizon_moments,
+    temperature: torch.Tensor | float | None = None,
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """The MVE / STEVE / RAVE target of a batch, from the networks as callables: the rollout
     (:func:`imagined_rollout`), every reward member on every transition member's steps, the
@@ -349,6 +350,15 @@ def value_expansion_target(
     Every tensor may carry leading dimensions ``*L`` (none for one learner; a seed group's
     seed), which lead the callables' inputs and outputs too; the functions above see them
     as batch dimensions beside ``M``.
+
+    With ``temperature`` set, the policy is stochastic (SAC's): ``policy`` returns a sampled
+    action and its log-probability ``(a~, log pi(a~ | s~))``, and every candidate is a soft
+    return, with the entropy bonus ``-temperature * log pi(a~_{t+h} | s~_{t+h})`` of each
+    imagined action beside the reward it earns and the bootstrap value it is scored with:
+    ``T_H = r_t + sum_{h=1..H} gamma^h c_{t,t+h} (r~_{t+h} - temperature log pi_{t+h})
+    + gamma^{H+1} c_{t,t+H+1} (Q'_k - temperature log pi_{t+H+1})``. The critics estimate
+    the soft Q-function, so each horizon's candidate estimates the same quantity; at
+    ``H = 0`` it is SAC's own TD(0) target ``r_t + gamma c (Q' - temperature log pi)``.
 
     Args:
         next_obs (Tensor): ``s_{t+1}``, ``[*L, M, S]``.
@@ -366,6 +376,8 @@ def value_expansion_target(
         gamma, mix, alpha, eps: as :func:`candidate_targets` and :func:`expansion_target`
             take them (``alpha``: a scalar or ``[*L, M]``).
         moments (Callable): the moments of the candidates; :func:`horizon_moments`.
+        temperature (float or Tensor, optional): SAC's entropy temperature (a scalar or
+            ``[*L]``, one per leading index); ``None`` for a deterministic policy.
 
     Returns:
         ``(target [*L, M], var [*L, M, H_max + 1], weights [*L, M, H_max + 1])``.
@@ -384,7 +396,16 @@ def value_expansion_target(
     N, H = num_members, horizon
     lead, (M, D) = next_obs.shape[:-2], next_obs.shape[-2:]
     n = len(lead)
-    states, actions = imagined_rollout(next_obs, policy, step, N, H)  # [*L, N, M, H+1, F]
+    log_probs = []  # a stochastic policy's log pi of each action it takes, in rollout order
+
+    def acting(s):
+        if temperature is None:
+            return policy(s)
+        action, log_prob = policy(s)
+        log_probs.append(log_prob)
+        return action
+
+    states, actions = imagined_rollout(next_obs, acting, step, N, H)  # [*L, N, M, H+1, F]
     A = actions.shape[-1]
     rewards = imagined_reward(states[..., :-1, :], actions[..., :-1, :], states[..., 1:, :])
     done_prob = termination_prob(states[..., 1:, :])  # [*L, Ni, M, H]
@@ -396,11 +417,16 @@ def value_expansion_target(
     q0 = q[..., :M].reshape(*lead, K, 1, M, 1).expand(*lead, K, N, M, 1)
     values = torch.cat([q0, q[..., M:].reshape(*lead, K, N, M, H)], -1)  # [*L, K, Ni, M, H+1]
     # the layouts of the functions above: the ensemble dimensions first, *L with the batch
+    rewards, values = rewards.movedim((n + 1, n), (0, 1)), values.movedim((n + 1, n), (0, 1))
+    if temperature is not None:  # [*L, M] at s_{t+1}, every member's [*L, N, M] after
+        first = log_probs[0].unsqueeze(-2).expand(*lead, N, M)
+        log_pi = torch.stack([first, *log_probs[1:]], -1).movedim(n, 0)  # [Ni, *L, M, H+1]
+        t = torch.as_tensor(temperature, dtype=log_pi.dtype, device=log_pi.device)
+        bonus = -t.reshape(*t.shape, 1, 1) * log_pi  # the entropy bonus of each action
+        rewards = rewards + bonus[..., :H].unsqueeze(1)  # beside each reward member's reward
+        values = values + bonus.unsqueeze(1)  # and each critic's value
     continuation = continuation_weights(terminated, done_prob.movedim(n, 0))
-    candidates = candidate_targets(
-        reward, rewards.movedim((n + 1, n), (0, 1)), values.movedim((n + 1, n), (0, 1)),
-        continuation, gamma,
-    )  # fmt: skip
+    candidates = candidate_targets(reward, rewards, values, continuation, gamma)
     mean, var = moments(candidates)
     target, weights = expansion_target(mean, var, mix=mix, alpha=alpha, horizon=H, eps=eps)
     return target, var, weights
