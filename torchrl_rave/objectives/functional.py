@@ -366,15 +366,20 @@ def value_expansion_target(
         terminated (Tensor): whether ``s_{t+1}`` is terminal, ``[*L, M]``.
 
     Keyword Args:
-        policy, step: as :func:`imagined_rollout` takes them.
+        policy (Callable): as :func:`imagined_rollout` takes it.
+        step (Callable): as :func:`imagined_rollout` takes it.
         imagined_reward (Callable): ``(s, a, s') -> [*L, Nj, Ni, M, H_max]`` for inputs
             ``[*L, Ni, M, H_max, .]``: each reward member on every transition member's steps.
         termination_prob (Callable): ``s' [*L, Ni, M, H_max, S] -> [*L, Ni, M, H_max]``,
             each member's own termination model on its states.
         critic (Callable): ``(s, a) [*L, R, .] -> [*L, K, R]``, the K target critics.
-        num_members (int), horizon (int): ``N`` and ``H_max``.
-        gamma, mix, alpha, eps: as :func:`candidate_targets` and :func:`expansion_target`
-            take them (``alpha``: a scalar or ``[*L, M]``).
+        num_members (int): ``N``.
+        horizon (int): ``H_max``.
+        gamma (float or Tensor): the discount.
+        mix (str): as :func:`expansion_target` takes it.
+        alpha (float or Tensor): as :func:`expansion_target` takes it (a scalar or
+            ``[*L, M]``).
+        eps (float): as :func:`expansion_target` takes it.
         moments (Callable): the moments of the candidates; :func:`horizon_moments`.
         temperature (float or Tensor, optional): SAC's entropy temperature (a scalar or
             ``[*L]``, one per leading index); ``None`` for a deterministic policy.

@@ -63,8 +63,9 @@ def world_model_loss_terms(
             transition and reward heads, ``[*S]``.
 
     Keyword Args:
-        reward_coeff, termination_coeff, logvar_bound_coeff (float): as
-            :class:`WorldModelEnsembleLoss` takes them.
+        reward_coeff (float): as :class:`WorldModelEnsembleLoss` takes it.
+        termination_coeff (float): as :class:`WorldModelEnsembleLoss` takes it.
+        logvar_bound_coeff (float): as :class:`WorldModelEnsembleLoss` takes it.
 
     Returns:
         ``loss_transition``, ``loss_reward``, ``loss_termination`` (``[*S]``, with
