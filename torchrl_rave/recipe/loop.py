@@ -92,7 +92,7 @@ def train(cfg: DictConfig, run_dir: str) -> dict[str, float]:
     ``cfg.seeds``; returns the final evaluation metrics (a group's: each seed's under
     ``seed<s>/<metric>``, their mean over seeds under ``<metric>``). Everything is written
     under ``run_dir``, which no other process may train into meanwhile
-    (:func:`exclusive_run`). A new run into a directory that holds one already is refused
+    (``exclusive_run``). A new run into a directory that holds one already is refused
     (``FileExistsError``, naming ``resume=``)."""
     check_config(cfg)
     warn_if_no_updates(resolve_config(cfg))

@@ -37,7 +37,7 @@ __all__ = [
 
 def total_loss(loss) -> Callable[[TensorDictBase], tuple[TensorDictBase, torch.Tensor]]:
     """``batch -> (loss outputs, their sum)``: the part of an update that
-    :func:`compile_loss` hands to ``torch.compile``."""
+    :func:`~torchrl_rave.objectives.compile.compile_loss` hands to ``torch.compile``."""
 
     def loss_and_total(batch: TensorDictBase):
         out = loss(batch)
@@ -70,9 +70,10 @@ def agent_update(
 
 def make_agent_step(cfg: DictConfig, loss, optimizers: dict, target_updater):
     """The recipe's agent update on a batch, ``agent_step(batch, step_actor)``; with
-    ``compile.enabled`` its loss forward goes through :func:`compile_loss`
-    (``compile.mode``), compiled at the first call. (The world model's step is
-    :class:`WorldModelTrainer`'s, compiled alike.)"""
+    ``compile.enabled`` its loss forward goes through
+    :func:`~torchrl_rave.objectives.compile.compile_loss` (``compile.mode``), compiled at
+    the first call. (The world model's step is
+    :class:`~torchrl_rave.trainers.WorldModelTrainer`'s, compiled alike.)"""
     loss_fn = total_loss(loss)
     if cfg.compile.enabled:
         loss_fn = compile_loss(loss_fn, cfg.compile.mode)

@@ -124,7 +124,7 @@ class WorldModelTrainer(TrainerHookBase):
         """Advances the schedule as :meth:`step` (``call=True``) or :meth:`pretrain`
         (``call=False``) does, and returns the number of model steps that call takes (the
         pretraining's at the first, then one every ``train_every`` calls), counted in
-        :attr:`updates` as taken. :meth:`step` and :meth:`pretrain` then take them; a
+        ``updates`` as taken. :meth:`step` and :meth:`pretrain` then take them; a
         caller that takes them itself (a seed group steps all its seeds' models as one)
         uses this alone, so that each seed's trainer keeps its schedule for checkpoints."""
         n = 0
