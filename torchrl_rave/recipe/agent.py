@@ -279,7 +279,7 @@ def load_policy(
 ) -> TensorDictModuleBase:
     """A ready TorchRL policy from a run directory: the trained deterministic actor (or,
     with ``explore=True``, the exploration policy the run collected with), in a
-    :class:`CheckedPolicy` that names observations of the wrong width or dtype, and NaN.
+    :class:`~torchrl_rave.recipe.agent.CheckedPolicy` that names observations of the wrong width or dtype, and NaN.
     ``trust`` as for :func:`load_agent`.
 
     Examples:
@@ -295,7 +295,7 @@ class CheckedPolicy(TensorDictModuleBase):
     another width than the policy was trained on, an integer or other-precision tensor,
     NaN or inf (each a ``ValueError`` naming the entry, as the losses raise). Otherwise it
     is ``policy`` itself: the same keys, parameters and outputs.
-    :func:`load_policy` returns one, so that a loaded policy fed the wrong env's
+    :func:`~torchrl_rave.recipe.load_policy` returns one, so that a loaded policy fed the wrong env's
     observations says so instead of failing inside a matrix product.
 
     Args:
@@ -591,7 +591,7 @@ def make_world_model_trainer(
 
 def make_seed_group(cfg: DictConfig, agents: list[Agent], **kwargs):
     """One :class:`~torchrl_rave.trainers.SeedGroup` of ``agents`` (built by
-    :func:`make_agent` from ``cfg``, one per seed), with ``cfg``'s learning rates and ``tau``
+    :func:`~torchrl_rave.recipe.make_agent` from ``cfg``, one per seed), with ``cfg``'s learning rates and ``tau``
     (``kwargs``: its other keyword arguments). From then on the agents' parameters are
     views of the group's tensors."""
     from torchrl_rave.trainers import SeedGroup

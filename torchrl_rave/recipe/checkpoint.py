@@ -215,7 +215,7 @@ class RunCheckpoint:
     renamed into place, so a kill at any moment leaves the previous one whole; the two
     newest are kept. Loading checks the checksums first: a damaged newest checkpoint is
     moved to ``checkpoints/damaged/`` and the older one is used, with a
-    :class:`DamagedCheckpointWarning`. Tensors are stored as TensorDict memory maps and
+    :class:`~torchrl_rave.recipe.checkpoint.DamagedCheckpointWarning`. Tensors are stored as TensorDict memory maps and
     everything else as JSON: loading one runs no code from it (no pickle).
 
     The components are the ones passed to :meth:`save` / :meth:`load`: live objects with
@@ -256,7 +256,7 @@ class RunCheckpoint:
         return self._newest_valid(None, set_aside=False)
 
     def verify(self, path: Path, components: list[str] | None = None) -> None:
-        """Raises :class:`DamagedCheckpoint` naming the first file of ``path`` (of the
+        """Raises :class:`~torchrl_rave.recipe.checkpoint.DamagedCheckpoint` naming the first file of ``path`` (of the
         given components' files, and the manifest) that is missing, has the wrong size
         or the wrong checksum."""
         path = Path(path)
@@ -331,7 +331,7 @@ class RunCheckpoint:
     def preflight(self, expected_bytes: int | Callable[[int], int] = 0) -> None:
         """Before any training: the checkpoint directory can be created and written to and
         its filesystem has ``expected_bytes`` free (or ``expected_bytes(block)``, given the
-        filesystem's block size); :class:`CheckpointWriteError` otherwise."""
+        filesystem's block size); :class:`~torchrl_rave.recipe.checkpoint.CheckpointWriteError` otherwise."""
         probe = self.root / f".write-test-{uuid.uuid4().hex}"
         try:
             self.root.mkdir(parents=True, exist_ok=True)
@@ -356,7 +356,7 @@ class RunCheckpoint:
         return self.root / f"{PREFIX}{int(frames):012d}"
 
     def save(self, frames: int, **components) -> Path:
-        """Writes checkpoint ``frames``; raises :class:`CheckpointWriteError` (naming the
+        """Writes checkpoint ``frames``; raises :class:`~torchrl_rave.recipe.checkpoint.CheckpointWriteError` (naming the
         directory and the cause) when it cannot, leaving the previous checkpoints intact."""
         destination = self.path(frames)
         stage = self.root / f".{destination.name}.writing-{uuid.uuid4().hex}"

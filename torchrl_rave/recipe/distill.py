@@ -123,7 +123,7 @@ def distill_run(
     each entry's range in the pairs), and writes ``out_dir``:
     a run directory whose checkpoint is ``run_dir``'s with the actor, its target copy and
     the exploration policy replaced by the fitted one. Nothing of ``run_dir`` changes.
-    ``trust`` as for :func:`~torchrl_rave.recipe.agent.load_agent`.
+    ``trust`` as for :func:`~torchrl_rave.recipe.load_agent`.
 
     The pairs are collected in the env of the curriculum stage the run had reached (a
     ``curriculum.kwarg`` run's stage speed), recorded under ``collected_with`` and in the

@@ -41,7 +41,7 @@ class EpisodeNotRestored(UserWarning):
 
 def episode_recorder(env) -> EpisodeReplay | None:
     """The :class:`~torchrl_rave.envs.EpisodeReplay` of a TorchRL env built by
-    :func:`~torchrl_rave.recipe.agent.make_env` with ``record_episode=True``, or ``None``."""
+    :func:`~torchrl_rave.recipe.make_env` with ``record_episode=True``, or ``None``."""
     base = getattr(env, "base_env", env)
     gym_env = getattr(base, "_env", None)
     return gym_env if isinstance(gym_env, EpisodeReplay) else None

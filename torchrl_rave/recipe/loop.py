@@ -1,9 +1,9 @@
 """The recipe's training loop: one run of any ``algorithm=``, or a seed group
 (``seeds=[...]``), from a config, into a run directory, resumable from its checkpoints.
 
-:func:`train` is what ``python recipes/rave_mujoco.py`` and the ``torchrl-rave-train``
+:func:`~torchrl_rave.recipe.train` is what ``python recipes/rave_mujoco.py`` and the ``torchrl-rave-train``
 command run, with the pieces of :mod:`torchrl_rave.recipe`; call it from a script with a
-config from :func:`~torchrl_rave.recipe.schema.default_config`.
+config from :func:`~torchrl_rave.recipe.default_config`.
 
 A single run is a group of one: the loop below holds a list of runs, each with its env,
 agent, replay buffer, checkpoints and logger, and one *learner* updates them all

@@ -661,7 +661,7 @@ def help_text(command: str) -> str:
 
 def defaults() -> DictConfig:
     """The schema's defaults as a plain (untyped) config: what hydra composes from, so that
-    bad values reach :func:`~torchrl_rave.recipe.config.check_config` all at once."""
+    bad values reach :func:`~torchrl_rave.recipe.check_config` all at once."""
     return OmegaConf.create(OmegaConf.to_container(OmegaConf.structured(RecipeConfig)))
 
 
@@ -674,7 +674,7 @@ def default_config(
     """A complete recipe config: the schema's defaults, then ``preset`` (``cpu``,
     ``paper`` or ``mujoco``) with its values for the algorithm, then ``algorithm``,
     ``env_name`` and the ``key=value`` ``overrides`` (checked by
-    :func:`~torchrl_rave.recipe.config.check_config`, not here). The algorithm is
+    :func:`~torchrl_rave.recipe.check_config`, not here). The algorithm is
     ``algorithm``, else an ``algorithm=`` of ``overrides``, else the default."""
     given = OmegaConf.from_dotlist(list(overrides))
     if algorithm is None:
