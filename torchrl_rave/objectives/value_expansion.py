@@ -118,7 +118,7 @@ class ValueExpansionEstimator(ValueEstimatorBase):
 
     Diagnostics (per-sample alpha, ``V_H`` and the horizon weights) are written into the
     input tensordict under the ``alpha``/``horizon_variance``/``horizon_weights`` keys and
-    kept as :attr:`diagnostics` (a TensorDict) for losses that work on a copy of the batch.
+    kept as ``diagnostics`` (a TensorDict) for losses that work on a copy of the batch.
 
     STEVE and RAVE need ``K >= 2`` critics: with one, every ``H = 0`` candidate is the
     same number, ``V_0 = 0`` and the inverse-variance mix returns TD(0) after paying for
@@ -267,7 +267,7 @@ class ValueExpansionEstimator(ValueEstimatorBase):
         ``num_value_nets``), ``TD3Loss`` and other losses exposing ``qvalue_network`` with
         stacked parameters (``K`` = their number), and copies the loss's key names (value,
         reward, done, terminated, action). A single-critic loss (``DDPGLoss``) is refused
-        for STEVE and RAVE: see :meth:`_check_num_critics`.
+        for STEVE and RAVE (with one critic, ``V_0 = 0`` and the mix reduces to TD(0)).
 
         Keyword Args:
             world_model (WorldModelEnsemble): required.

@@ -34,8 +34,9 @@ class WorldModelTrainer(TrainerHookBase):
     Each model step samples its own batch, moves it to the model's device (TorchRL's
     scripts keep the replay buffer on the CPU and the models on
     ``get_available_device()``; :meth:`extend` moves its batch likewise), computes
-    :class:`WorldModelEnsembleLoss` (transition + reward + termination) and takes one
-    optimiser step, whose loss terms :meth:`step` returns for logging. ``state_dict``
+    :class:`~torchrl_rave.objectives.WorldModelEnsembleLoss` (transition + reward +
+    termination) and takes one optimiser step, whose loss terms :meth:`step` returns for
+    logging. ``state_dict``
     holds the optimiser and the schedule, so a resumed run continues it exactly.
     As a :class:`~torchrl.trainers.TrainerHookBase`, :meth:`register` hooks the same two
     calls into a TorchRL ``Trainer``.
