@@ -59,10 +59,8 @@ from torchrl_rave.recipe.collect import (
     workers_share_weights,
 )
 from torchrl_rave.recipe.config import (
-    ConfigError,
     apply_process_settings,
     check_config,
-    check_group,
     check_resumable,
     replay_buffer_size,
     resolve_config,
@@ -149,8 +147,6 @@ def _lockstep(iterators, streams):
 
 def _train(cfg: DictConfig, run_dir: str) -> dict[str, float]:
     group = cfg.get("seeds") is not None
-    if group and check_group(cfg):
-        raise ConfigError(check_group(cfg))
     cfg = resolve_config(cfg).copy()  # ppo: its rollout sets the collector's batch
     root = Path(cfg.resume or run_dir)
     if cfg.resume:
@@ -169,9 +165,11 @@ def _train(cfg: DictConfig, run_dir: str) -> dict[str, float]:
     record = cfg.collector.backend == "direct"
     curriculum = make_curriculum(cfg)
 
+    def staged(one: DictConfig) -> DictConfig:  # a seed's config with the curriculum's stage
+        return one if curriculum is None else stage_config(one, curriculum)
+
     def envs(one: DictConfig):
-        stage = one if curriculum is None else stage_config(one, curriculum)
-        return make_env(stage, device, record_episode=record), make_env(stage, device)
+        return make_env(staged(one), device, record_episode=record), make_env(staged(one), device)
 
     seeds = [int(s) for s in cfg.seeds] if group else [int(cfg.env.seed)]
     streams = SeedStreams(len(seeds), device) if group else _SharedStream()
@@ -281,9 +279,8 @@ def _train(cfg: DictConfig, run_dir: str) -> dict[str, float]:
         while counters["frames"] < total:  # again after each curriculum stage
             for i, run in enumerate(runs):
                 with streams.use(i):
-                    stage = run.cfg if curriculum is None else stage_config(run.cfg, curriculum)
                     run.collector = make_collector(
-                        stage, run.env, run.agent.policy, device, counters["frames"]
+                        staged(run.cfg), run.env, run.agent.policy, device, counters["frames"]
                     )
                     run.episode.attach(run.env, run.collector)
                     if run.rng_at_load is not None:  # the first collector of a resumed run
