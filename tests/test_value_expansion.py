@@ -11,8 +11,20 @@ from tensordict.nn import NormalParamExtractor, TensorDictModule
 from test_world_model import small_model
 from torch import nn
 from torchrl.data import Bounded
+from torchrl.envs.utils import ExplorationType, set_exploration_type
 from torchrl.modules import MLP, Actor, ProbabilisticActor, TanhNormal, ValueOperator
-from torchrl.objectives import DDPGLoss, IQLLoss, REDQLoss, SACLoss, SoftUpdate, TD3Loss
+from torchrl.objectives import (
+    CQLLoss,
+    CrossQLoss,
+    DDPGLoss,
+    DiscreteSACLoss,
+    IQLLoss,
+    REDQLoss,
+    SACLoss,
+    SoftUpdate,
+    TD3Loss,
+    ValueEstimators,
+)
 
 from torchrl_rave import (
     EnsembleDDPGLoss,
@@ -138,14 +150,25 @@ class TestTD0Equivalence:
         torch.testing.assert_close(loss.value_estimator.value_estimate(data.clone()), ours)
 
 
-def naive_target(wm, actor, critic, critic_params, data, gamma, H, alpha, mix):
-    """Member by member, candidate by candidate, with the world model in mean mode."""
+def naive_target(wm, actor, critic, critic_params, data, gamma, H, alpha, mix, temperature=None):
+    """Member by member, candidate by candidate, with the world model in mean mode. With a
+    ``temperature``, the actor is a probabilistic one: every action is drawn (``rsample``)
+    and scored (``log_prob``) apart, and ``-temperature * log pi`` joins each imagined
+    reward and each bootstrap."""
     N = wm.num_models
     K = critic_params.batch_size[0]
     obs1 = data["next", "observation"]
     r = data["next", "reward"].squeeze(-1)
-    d = data["next", "terminated"].squeeze(-1).float()
-    pi = lambda s: actor(TensorDict(observation=s, batch_size=s.shape[:-1]))["action"]  # noqa: E731
+    d = data["next", "terminated"].squeeze(-1).to(r.dtype)
+
+    def pi(s):  # (action, -temperature * log pi(action | s))
+        td = TensorDict(observation=s, batch_size=s.shape[:-1])
+        if temperature is None:
+            return actor(td)["action"], 0.0
+        with set_exploration_type(ExplorationType.RANDOM):
+            dist = actor.get_dist(td)
+        a = dist.rsample()
+        return a, -temperature * dist.log_prob(a)
 
     def q(k, s, a):
         with critic_params[k].to_module(critic):
@@ -153,22 +176,23 @@ def naive_target(wm, actor, critic, critic_params, data, gamma, H, alpha, mix):
                 "state_action_value"
             ].squeeze(-1)
 
-    traj = []  # per member i: states, actions, continuation
+    traj = []  # per member i: states, actions, entropy bonuses, continuation
     for i in range(N):
-        s, a = obs1, pi(obs1)
-        states, actions, cont = [s], [a], [1 - d]
+        s, (a, e) = obs1, pi(obs1)
+        states, actions, bonus, cont = [s], [a], [e], [1 - d]
         for _ in range(H):
             s = wm.step(s, a, sample=False)[i]
-            a = pi(s)
+            a, e = pi(s)
             states.append(s)
             actions.append(a)
+            bonus.append(e)
             cont.append(cont[-1] * (1 - wm.termination_prob(s)[i].squeeze(-1)))
-        traj.append((states, actions, cont))
+        traj.append((states, actions, bonus, cont))
     means, variances = [], []
     for Hh in range(H + 1):
         cands = []
         for i in range(N):
-            states, actions, cont = traj[i]
+            states, actions, bonus, cont = traj[i]
             for j in range(N):
                 for k in range(K):
                     T = r.clone()
@@ -176,8 +200,9 @@ def naive_target(wm, actor, critic, critic_params, data, gamma, H, alpha, mix):
                         rj = wm.reward(states[h - 1], actions[h - 1], states[h], sample=False)[
                             j
                         ].squeeze(-1)
-                        T = T + gamma**h * cont[h - 1] * rj
-                    T = T + gamma ** (Hh + 1) * cont[Hh] * q(k, states[Hh], actions[Hh])
+                        T = T + gamma**h * cont[h - 1] * (rj + bonus[h - 1])
+                    value = q(k, states[Hh], actions[Hh]) + bonus[Hh]
+                    T = T + gamma ** (Hh + 1) * cont[Hh] * value
                     cands.append(T)
         cands = torch.stack(cands)
         means.append(cands.mean(0))
@@ -445,6 +470,138 @@ class TestLossIntegration:
         assert (est.rollout, est.mix) == ("mean", "inverse_variance")
 
 
+def sac_loss(K=2, dtype=torch.float32):
+    torch.manual_seed(3)
+    actor, critic = stochastic_actor().to(dtype), critic_net().to(dtype)
+    loss = SACLoss(actor, critic, num_qvalue_nets=K, target_entropy=-float(A))
+    SoftUpdate(loss, tau=0.05)
+    perturb(loss.target_qvalue_network_params)
+    return loss
+
+
+@pytest.fixture
+def constant_noise(monkeypatch):
+    """Every Gaussian draw (SAC's tanh-Gaussian ``rsample``) takes the same standard-normal
+    values per action dimension, so that separate draws, batched or row by row, agree."""
+    eps = torch.tensor([0.4, -0.9])
+
+    def draw(shape, dtype, device):
+        return eps.to(dtype).expand(shape).clone()
+
+    monkeypatch.setattr(torch.distributions.normal, "_standard_normal", draw)
+
+
+def as_double(data):
+    return data.apply(lambda x: x.double() if x.is_floating_point() else x)
+
+
+class TestSoftTargetInSACLoss:
+    """The soft value-expansion target inside TorchRL's own SACLoss (and REDQLoss)."""
+
+    def test_rave_at_horizon_zero_with_alpha_one_is_sacs_own_target(self, constant_noise):
+        """With K = 2 critics the mean less one (population) std of their two values is
+        their minimum: RAVE at H = 0 with a constant alpha = 1 is SACLoss's clipped
+        double-Q soft TD(0) target, at the temperature the loss has at call time."""
+        loss = sac_loss()
+        data = batch(B=8, terminal=(2, 5))
+        for log_alpha in (0.0, -1.3, 0.8):
+            loss.log_alpha.data.fill_(log_alpha)
+            loss.make_value_estimator(ValueEstimators.TD0, gamma=0.9)
+            want, want_meta = loss.qvalue_v2_loss(data.clone())
+            est = RAVEValueEstimator.for_loss(
+                loss, world_model=world_model(3), gamma=0.9, horizon=0, alpha=1.0,
+                alpha_mode="constant",
+            )  # fmt: skip
+            loss.make_value_estimator(est)
+            got, got_meta = loss.qvalue_v2_loss(data.clone())
+            torch.testing.assert_close(got_meta["td_error"], want_meta["td_error"])
+            torch.testing.assert_close(got, want)
+        # and the estimator alone, against r + gamma (1 - d) (min_k Q'_k - alpha log pi)
+        with torch.no_grad(), set_exploration_type(ExplorationType.RANDOM):
+            nxt = data["next"].clone()
+            dist = loss.actor_network.get_dist(nxt)
+            a = dist.rsample()
+            nxt["action"] = a
+            q = torch.stack([_q(loss, nxt, k) for k in range(2)]).min(0)[0]
+            soft = q - loss._alpha * dist.log_prob(a)
+        r, d = data["next", "reward"].squeeze(-1), data["next", "terminated"].squeeze(-1)
+        torch.testing.assert_close(
+            est.value_estimate(data.clone()).squeeze(-1), r + 0.9 * (~d) * soft
+        )
+
+    @pytest.mark.parametrize("H", [1, 3])
+    def test_against_a_naive_rollout_in_float64(self, H, constant_noise):
+        loss = sac_loss(dtype=torch.float64)
+        loss.log_alpha.data.fill_(-0.5)
+        wm = world_model(3).double()
+        est = ValueExpansionEstimator.for_loss(
+            loss, world_model=wm, gamma=0.9, horizon=H, rollout="mean", alpha=0.7
+        )
+        data = as_double(batch(B=6, terminal=(1,)))
+        ours = est.value_estimate(data).squeeze(-1)
+        alpha = torch.full((6,), 0.7, dtype=torch.float64)
+        with torch.no_grad(), loss.actor_network_params.to_module(loss.actor_network):
+            ref = naive_target(
+                wm, loss.actor_network, loss.qvalue_network, loss.target_qvalue_network_params,
+                data, 0.9, H, alpha, "inverse_variance", temperature=float(loss._alpha),
+            )  # fmt: skip
+        torch.testing.assert_close(ours, ref, rtol=1e-10, atol=1e-10)
+        # the entropy terms count: without them the target is another number
+        with torch.no_grad(), loss.actor_network_params.to_module(loss.actor_network):
+            plain = naive_target(
+                wm, loss.actor_network, loss.qvalue_network, loss.target_qvalue_network_params,
+                data, 0.9, H, alpha, "inverse_variance", temperature=0.0,
+            )  # fmt: skip
+        assert (ours - plain).abs().max() > 1e-2
+
+    def test_no_gradient_reaches_the_actor_or_model_through_the_target(self):
+        loss = sac_loss()
+        wm = world_model(3)
+        loss.make_value_estimator(
+            RAVEValueEstimator.for_loss(loss, world_model=wm, gamma=0.9, horizon=2)
+        )
+        loss_qvalue, _ = loss.qvalue_v2_loss(batch(B=12))
+        loss_qvalue.backward()  # the sampled imagined actions are reparameterised draws
+        assert all(p.grad is None for p in wm.parameters())
+        assert all(p.grad is None for p in loss.actor_network_params.values(True, True))
+        assert loss.log_alpha.grad is None
+        assert all(p.grad is not None for p in loss.qvalue_network_params.values(True, True))
+
+    def test_sacloss_trains_with_rave_and_logs_its_diagnostics(self):
+        loss = sac_loss()
+        est = RAVEValueEstimator.for_loss(loss, world_model=world_model(3), gamma=0.9, horizon=2)
+        loss.make_value_estimator(est)
+        out = loss(batch(B=10))
+        (out["loss_actor"] + out["loss_qvalue"] + out["loss_alpha"]).backward()
+        assert est.diagnostics["rave_horizon_weights"].shape == (10, 3)
+        torch.testing.assert_close(est.diagnostics["rave_horizon_weights"].sum(-1), torch.ones(10))
+
+    def test_redq_expands_over_every_critic_with_its_temperature(self, constant_noise):
+        torch.manual_seed(3)
+        loss = REDQLoss(stochastic_actor(), critic_net(), num_qvalue_nets=5)
+        loss.log_alpha.data.fill_(0.5)
+        est = STEVEEstimator.for_loss(loss, world_model=world_model(2), gamma=0.9, horizon=1)
+        shapes = []
+        original = est.networks.critic
+
+        def spy(o, a, p, keys):
+            out = original(o, a, p, keys)
+            shapes.append(tuple(out.shape))
+            return out
+
+        est.networks.critic = spy
+        loss.make_value_estimator(est)
+        out = loss(batch(B=4))
+        assert shapes == [(5, 4 * (1 + 2 * 1))]
+        assert est.networks.temperature() == loss.alpha
+        (out["loss_actor"] + out["loss_qvalue"]).backward()
+
+
+def _q(loss, td, k):
+    with loss.target_qvalue_network_params[k].to_module(loss.qvalue_network):
+        return loss.qvalue_network(td.clone())["state_action_value"].squeeze(-1)
+
+
 class TestNoGradientThroughTarget:
     def test_critic_actor_and_model_get_no_target_gradient(self):
         wm = world_model(1)  # one member: a single critic is then no degenerate mix
@@ -626,13 +783,25 @@ class TestBadInput:
         cls.for_loss(ddpg_loss(), world_model=world_model(1), gamma=0.9).value_estimate(batch())
 
     @pytest.mark.parametrize("cls", [RAVEValueEstimator, STEVEEstimator, MVEEstimator])
-    @pytest.mark.parametrize("loss_cls", [SACLoss, REDQLoss])
-    def test_entropy_regularised_losses_are_refused(self, cls, loss_cls):
-        # SAC-style losses put Q(s', a') - alpha log pi(a'|s') in their target; an estimator
-        # installed there would silently bootstrap without the entropy term.
-        loss = loss_cls(stochastic_actor(), critic_net(), num_qvalue_nets=4)
-        with pytest.raises(ValueError, match=f"{loss_cls.__name__} bootstraps from .*entropy"):
-            cls.for_loss(loss, world_model=world_model(4), gamma=0.9)
+    def test_entropy_losses_whose_target_it_cannot_expand_are_refused(self, cls):
+        wm = world_model(4)
+        crossq = CrossQLoss(stochastic_actor(), critic_net(), num_qvalue_nets=2)
+        with pytest.raises(ValueError, match="cannot expand CrossQLoss: it has no target critics"):
+            cls.for_loss(crossq, world_model=wm, gamma=0.9)
+        cql = CQLLoss(stochastic_actor(), critic_net())
+        with pytest.raises(ValueError, match="cannot expand CQLLoss: it is an offline loss"):
+            cls.for_loss(cql, world_model=wm, gamma=0.9)
+        discrete = ProbabilisticActor(
+            TensorDictModule(MLP(in_features=S, out_features=3), ["observation"], ["logits"]),
+            in_keys=["logits"], distribution_class=torch.distributions.Categorical,
+        )  # fmt: skip
+        dsac = DiscreteSACLoss(discrete, critic_net(), num_actions=3, num_qvalue_nets=2)
+        with pytest.raises(ValueError, match="DiscreteSACLoss: it acts on a discrete action set"):
+            cls.for_loss(dsac, world_model=wm, gamma=0.9)
+        value = ValueOperator(MLP(in_features=S, out_features=1, num_cells=[16]), ["observation"])
+        sac_v1 = SACLoss(stochastic_actor(), critic_net(), value_network=value)
+        with pytest.raises(ValueError, match="SACLoss bootstraps from a separate state-value"):
+            cls.for_loss(sac_v1, world_model=wm, gamma=0.9)
 
     def test_a_loss_bootstrapping_from_a_state_value_network_is_refused(self):
         value = ValueOperator(MLP(in_features=S, out_features=1, num_cells=[16]), ["observation"])

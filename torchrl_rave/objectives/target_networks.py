@@ -3,16 +3,38 @@
 from __future__ import annotations
 
 import torch
-from tensordict import TensorDictBase
+from tensordict import TensorDict, TensorDictBase
 from tensordict.nn import TensorDictModuleBase
+from torchrl.envs.utils import ExplorationType, set_exploration_type
+from torchrl.objectives import CQLLoss, CrossQLoss, DiscreteSACLoss, REDQLoss, SACLoss
+from torchrl.objectives.sac import compute_rsample_log_prob
 
 from torchrl_rave.modules.tensor_call import PlannedCalls
 
 __all__ = ["TargetNetworks"]
 
 
+#: why a loss with an entropy temperature cannot take a value-expansion target
+_SOFT_REFUSALS = (
+    (DiscreteSACLoss, "acts on a discrete action set: its target is an expectation over every "
+     "action, and the world model takes continuous action vectors"),
+    (CrossQLoss, "has no target critics: its target comes from the current critics in one "
+     "batch-normalised call together with the batch itself, which separate calls on imagined "
+     "states would change"),
+    (CQLLoss, "is an offline loss: its conservative penalty and its max-Q and deterministic "
+     "backups are not the soft target the estimators expand, and imagined rollouts would leave "
+     "the dataset's support that the penalty guards"),
+)  # fmt: skip
+
+#: the losses whose soft TD(0) target the estimators expand: their policy's and temperature's
+#: attributes (SACLoss samples the next action with its current actor, REDQLoss with its
+#: target actor, the current one's detached copy unless ``delay_actor``)
+_SOFT_LOSSES = ((SACLoss, "actor_network_params", "_alpha"),
+                (REDQLoss, "target_actor_network_params", "alpha"))  # fmt: skip
+
+
 class TargetNetworks:
-    """Calls a deterministic actor and ``K`` critics on plain tensors with target parameters.
+    """Calls an actor and ``K`` critics on plain tensors with target parameters.
 
     The parameters are read at call time: from a loss (``TargetNetworks.of_loss``, which
     follows TorchRL's ``target_<name>_params`` so soft updates are seen without re-wiring),
@@ -21,13 +43,22 @@ class TargetNetworks:
     matmul per layer through :class:`~torchrl_rave.modules.TensorCall`, or ``torch.vmap``
     when a module cannot be planned); plain parameters mean ``K = 1``.
 
+    The actor is deterministic (``observation -> action``), or, with ``stochastic=True``,
+    a TorchRL probabilistic actor (``get_dist``) such as SAC's: :meth:`sample` then draws a
+    reparameterised action and its log-probability as ``SACLoss`` draws its next action,
+    and :meth:`temperature` gives the entropy temperature.
+
     Args:
-        actor_network (TensorDictModuleBase): ``observation -> action``.
+        actor_network (TensorDictModuleBase): ``observation -> action``, or a probabilistic
+            actor with ``stochastic=True``.
         value_network (TensorDictModuleBase): ``(observation, action) -> value``.
 
     Keyword Args:
         actor_params, value_params (TensorDictBase, optional): fixed parameters to use.
         fast_calls (bool): plan the networks as tensor calls where possible. Defaults to ``True``.
+        stochastic (bool): the actor is a probabilistic one. Defaults to ``False``.
+        temperature (float or Tensor, optional): the entropy temperature of a stochastic
+            actor built without a loss (``of_loss`` reads the loss's at call time).
     """
 
     def __init__(
@@ -38,10 +69,22 @@ class TargetNetworks:
         actor_params: TensorDictBase | None = None,
         value_params: TensorDictBase | None = None,
         fast_calls: bool = True,
+        stochastic: bool = False,
+        temperature: float | torch.Tensor | None = None,
     ) -> None:
+        if stochastic and not hasattr(actor_network, "get_dist"):
+            raise ValueError(
+                f"stochastic=True needs a probabilistic actor (with get_dist), got "
+                f"{type(actor_network).__name__}"
+            )
+        if stochastic != (temperature is not None):
+            raise ValueError("a stochastic actor needs temperature=, a deterministic one none")
         self.actor_network = actor_network
         self.value_network = value_network
+        self.stochastic = stochastic
         self._fixed = (actor_params, value_params)
+        self._temperature = temperature
+        self._temperature_name: str | None = None
         self._loss = None
         self._loss_names: tuple[str, str] | None = None
         self.calls = PlannedCalls(fast_calls)
@@ -51,55 +94,64 @@ class TargetNetworks:
         """The target actor and critics of a TorchRL loss: ``qvalue_network`` (stacked,
         ``TD3Loss``-style) or ``value_network`` (``DDPGLoss``, :class:`EnsembleDDPGLoss`).
 
-        A loss with an entropy temperature (``log_alpha``: ``SACLoss``, ``REDQLoss``,
-        ``CQLLoss``, ``CrossQLoss``) is refused: it bootstraps from
-        ``Q(s', a') - alpha log pi(a' | s')`` with ``a'`` sampled from its policy, and the
-        estimators' targets, ``Q(s', pi(s'))`` of a deterministic actor, would drop that term.
-        So is a loss with both a ``qvalue_network`` and a ``value_network`` (``IQLLoss``),
-        which bootstraps from the state-value network.
+        A loss with an entropy temperature bootstraps from the soft value
+        ``Q'(s', a') - temperature * log pi(a' | s')`` with ``a'`` drawn from its policy:
+        ``SACLoss`` (version 2, without a state-value network; the next action from its
+        current actor, as it draws it) and ``REDQLoss`` (from its target actor) give a
+        stochastic actor and their temperature, read at call time. ``DiscreteSACLoss``,
+        ``CrossQLoss``, ``CQLLoss`` and a loss with both a ``qvalue_network`` and a
+        ``value_network`` (``IQLLoss``, SAC version 1: they bootstrap from a state-value
+        network) are refused, each with its reason.
         """
-        if hasattr(loss_module, "log_alpha"):
-            name = type(loss_module).__name__
-            raise ValueError(
-                f"{name} bootstraps from Q(s', a') - alpha log pi(a'|s') with a' sampled from "
-                "its stochastic policy (it has an entropy temperature, log_alpha). "
-                "Value-expansion estimators bootstrap from Q(s', pi(s')) of a deterministic "
-                f"actor, so installed in {name} they would drop its entropy term. Use them "
-                "with torchrl_rave.EnsembleDDPGLoss or TD3Loss(num_qvalue_nets=K)."
-            )
-        if hasattr(loss_module, "qvalue_network_params") and hasattr(
-            loss_module, "value_network_params"
-        ):
-            name = type(loss_module).__name__
+        name = type(loss_module).__name__
+        for kind, reason in _SOFT_REFUSALS:
+            if isinstance(loss_module, kind):
+                raise ValueError(f"value-expansion estimators cannot expand {name}: it {reason}")
+        def has(params: str) -> bool:  # SACLoss (v2) keeps value_network_params = None
+            return getattr(loss_module, params, None) is not None
+
+        if has("qvalue_network_params") and has("value_network_params"):
             raise ValueError(
                 f"{name} bootstraps from a separate state-value network V(s') (it has both a "
                 "qvalue_network and a value_network); value-expansion estimators bootstrap from "
-                f"Q(s', pi(s')) and would replace that target. Use them with "
-                "torchrl_rave.EnsembleDDPGLoss or TD3Loss(num_qvalue_nets=K)."
+                f"Q(s', a') and would replace that target. Use them with SACLoss (no "
+                "value_network), torchrl_rave.EnsembleDDPGLoss or TD3Loss(num_qvalue_nets=K)."
             )
+        soft = [(a, t) for kind, a, t in _SOFT_LOSSES if isinstance(loss_module, kind)]
+        if hasattr(loss_module, "log_alpha") and not soft:
+            raise ValueError(
+                f"{name} has an entropy temperature (log_alpha) but is not a loss whose soft "
+                "target the value-expansion estimators reproduce (SACLoss, REDQLoss)"
+            )
+        if getattr(loss_module, "gSDE", False):
+            raise ValueError(f"{name} with gSDE: its actor draws with state-dependent noise "
+                             "that imagined states do not carry; build it with gSDE=False")  # fmt: skip
         actor = (
             actor_network
             if actor_network is not None
             else getattr(loss_module, "actor_network", None)
         )
         if actor is None:
-            raise ValueError(
-                f"{type(loss_module).__name__} has no actor_network; pass actor_network= explicitly"
-            )
-        if "qvalue_network" in loss_module._modules or hasattr(
-            loss_module, "qvalue_network_params"
-        ):
+            raise ValueError(f"{name} has no actor_network; pass actor_network= explicitly")
+        if "qvalue_network" in loss_module._modules or has("qvalue_network_params"):
             critic = "qvalue_network"
-        elif hasattr(loss_module, "value_network_params"):
+        elif has("value_network_params"):
             critic = "value_network"
         else:
-            raise ValueError(
-                f"{type(loss_module).__name__} has neither a qvalue_network nor a value_network"
-            )
+            raise ValueError(f"{name} has neither a qvalue_network nor a value_network")
+        actor_name, temperature = soft[0] if soft else ("target_actor_network_params", None)
         nets = cls(actor, getattr(loss_module, critic), fast_calls=fast_calls)
+        nets.stochastic = bool(soft)
         nets._loss = loss_module
-        nets._loss_names = ("target_actor_network_params", f"target_{critic}_params")
+        nets._loss_names = (actor_name, f"target_{critic}_params")
+        nets._temperature_name = temperature
         return nets
+
+    def temperature(self) -> torch.Tensor | float:
+        """A stochastic actor's entropy temperature now (a loss's, read at call time)."""
+        if self._loss is not None:
+            return getattr(self._loss, self._temperature_name)
+        return self._temperature
 
     def params(self, target_params: TensorDictBase | None = None):
         """``(actor_params, value_params)`` for this call."""
@@ -125,6 +177,19 @@ class TargetNetworks:
     def policy(self, obs: torch.Tensor, params, keys) -> torch.Tensor:
         """Actions ``[*B, A]`` for observations ``[*B, S]``."""
         return self.calls.actions(self.actor_network, params, {keys.observation: obs}, keys.action)
+
+    def sample(self, obs: torch.Tensor, params, keys) -> tuple[torch.Tensor, torch.Tensor]:
+        """A stochastic actor's reparameterised actions ``[*B, A]`` and their
+        log-probabilities ``[*B]`` for observations ``[*B, S]``, drawn as ``SACLoss`` draws
+        its next action (``get_dist`` under random exploration, one ``rsample`` scored with
+        its own log-probability)."""
+        td = TensorDict({keys.observation: obs}, batch_size=obs.shape[:-1])
+        actor = self.actor_network
+        with set_exploration_type(ExplorationType.RANDOM):
+            if params is None:
+                return compute_rsample_log_prob(actor.get_dist(td))
+            with params.to_module(actor, preserve_module_state=False):
+                return compute_rsample_log_prob(actor.get_dist(td))
 
     def critic(self, obs: torch.Tensor, action: torch.Tensor, params, keys) -> torch.Tensor:
         """Critic values ``[K, *B]`` (``K = 1`` without stacked parameters)."""

@@ -158,8 +158,12 @@ class ValueExpansionEstimator(ValueEstimatorBase):
             Both give the same numbers. Defaults to ``True``.
         networks (TargetNetworks, optional): the actor and critics to call, already wired
             (:meth:`for_loss` passes a loss's, whose target parameters it reads at call
-            time); when given, ``actor_params``, ``value_params`` and ``fast_calls`` are
-            its own. Defaults to ``None``: built from the arguments above.
+            time); when given, ``actor_params``, ``value_params``, ``fast_calls`` and the
+            temperature are its own. Defaults to ``None``: built from the arguments above.
+        temperature (float, optional): with a probabilistic ``actor_network`` (SAC's), the
+            entropy temperature of the soft target (see :func:`~torchrl_rave.objectives.
+            functional.value_expansion_target`); :meth:`for_loss` reads a ``SACLoss``'s at
+            call time instead. Defaults to ``None``: a deterministic actor.
         device (torch.device, optional): where the buffers live.
 
     Examples:
@@ -207,6 +211,7 @@ class ValueExpansionEstimator(ValueEstimatorBase):
         check_inputs: bool = True,
         fast_calls: bool = True,
         networks: TargetNetworks | None = None,
+        temperature: float | None = None,
         device: torch.device | None = None,
     ) -> None:
         super().__init__(value_network=value_network, differentiable=False, device=device)
@@ -228,11 +233,11 @@ class ValueExpansionEstimator(ValueEstimatorBase):
         self.alpha_mode = alpha_mode
         self.variance_eps = float(POSITIVE.check("variance_eps", variance_eps))
         self.check_inputs = check_inputs
-        self.register_buffer("gamma", torch.tensor(float(gamma), device=self._device))
-        self.register_buffer("alpha", torch.tensor(float(alpha), device=self._device))
-        self.register_buffer(
-            "alpha_error_scale", torch.tensor(float(alpha_error_scale), device=self._device)
-        )
+        # in the world model's precision: a float32 gamma would cost a float64 model 3e-8
+        dtype = first_param_dtype(world_model) or torch.get_default_dtype()
+        for name, value in (("gamma", gamma), ("alpha", alpha),
+                            ("alpha_error_scale", alpha_error_scale)):  # fmt: skip
+            self.register_buffer(name, torch.tensor(float(value), dtype=dtype, device=self._device))
         # Held by reference: the loss (or the user) owns and trains these.
         self.__dict__["world_model"] = world_model
         if networks is None:
@@ -242,7 +247,11 @@ class ValueExpansionEstimator(ValueEstimatorBase):
                 actor_params=actor_params,
                 value_params=value_params,
                 fast_calls=fast_calls,
+                stochastic=temperature is not None,
+                temperature=temperature,
             )
+        elif temperature is not None:
+            raise ValueError("temperature= comes with the networks= given (their temperature())")
         self.__dict__["networks"] = networks
         self.__dict__["diagnostics"] = None
 
@@ -441,7 +450,9 @@ class ValueExpansionEstimator(ValueEstimatorBase):
         def step(s, a, per_member):
             return wm.step(s, a, sample=sample, per_member=per_member)
 
-        def policy(s):
+        def policy(s):  # a stochastic actor's (action, log_prob)
+            if nets.stochastic:
+                return nets.sample(s, actor_params, keys)
             return nets.policy(s, actor_params, keys)
 
         def imagined_reward(s, a, s2):  # [Nj, Ni, M, H]: shared inputs, every reward member
@@ -457,7 +468,7 @@ class ValueExpansionEstimator(ValueEstimatorBase):
             next_obs, reward, terminated, policy=policy, step=step,
             imagined_reward=imagined_reward, termination_prob=termination_prob, critic=critic,
             num_members=N, horizon=H, gamma=self.gamma, mix=self.mix, alpha=alpha,
-            eps=self.variance_eps,
+            eps=self.variance_eps, temperature=nets.temperature() if nets.stochastic else None,
         )  # fmt: skip
 
         diagnostics = TensorDict(
