@@ -107,6 +107,7 @@ class TargetNetworks:
         for kind, reason in _SOFT_REFUSALS:
             if isinstance(loss_module, kind):
                 raise ValueError(f"value-expansion estimators cannot expand {name}: it {reason}")
+
         def has(params: str) -> bool:  # SACLoss (v2) keeps value_network_params = None
             return getattr(loss_module, params, None) is not None
 
