@@ -53,3 +53,38 @@ def test_ci_runs_exactly_the_readmes_test_command():
     assert "sphinx -E -W" in tests  # the docs build, failing on any warning
     ci = (README.parent / ".ci" / "run").read_text().strip().splitlines()
     assert ci[-1] == tests
+
+
+SWAP = README.parent / "docs" / "swap.md"
+
+
+def sac_swap_code() -> str:
+    text = SWAP.read_text()
+    start, end = text.index("<!-- sac-swap-start -->"), text.index("<!-- sac-swap-end -->")
+    (block,) = re.findall(r"```python\n(.*?)```", text[start:end], flags=re.S)
+    return block
+
+
+def test_rave_inside_sacloss_as_the_docs_show_it(capsys):
+    """docs/swap.md's sota-shaped SAC loop with RAVE runs as written: SACLoss keeps its
+    own actor and temperature losses, the estimator expands its soft target, and the
+    diagnostics come out as scalars beside SAC's losses."""
+    torch.manual_seed(0)
+    scope: dict = {}
+    exec(compile(sac_swap_code(), str(SWAP), "exec"), scope)
+    loss, wm_trainer = scope["loss_module"], scope["wm_trainer"]
+    estimator = loss.value_estimator
+    assert type(loss).__name__ == "SACLoss"
+    assert type(estimator).__name__ == "RAVEValueEstimator"
+    assert estimator.networks.stochastic
+    torch.testing.assert_close(torch.as_tensor(estimator.networks.temperature()), loss._alpha)
+    weights = estimator.diagnostics["rave_horizon_weights"]
+    assert weights.shape == (256, 4)
+    torch.testing.assert_close(weights.sum(-1), torch.ones(256, device=weights.device))
+    assert (wm_trainer.calls, wm_trainer.updates) == (20, 70)
+    assert float(loss.log_alpha) != 0.0  # alpha_init=1: the temperature moved
+    printed = capsys.readouterr().out
+    for key in ("loss_qvalue", "loss_alpha", "rave_alpha", "rave_horizon_weights_h0",
+                "rave_horizon_variance_h3", "wm/loss_transition"):  # fmt: skip
+        assert f"'train/{key}': tensor(" in printed, key
+    assert sum("# RAVE" in line for line in sac_swap_code().splitlines()) <= 10

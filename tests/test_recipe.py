@@ -101,14 +101,15 @@ def undocumented_metrics(exp_dir: Path) -> list[str]:
 
 class TestAlgorithms:
     @pytest.mark.parametrize(
-        "algorithm", ["ddpg", "mve", "steve", "rave", "rave_constant", "td3", "sac"]
+        "algorithm",
+        ["ddpg", "mve", "steve", "rave", "rave_constant", "td3", "sac", "steve_sac", "rave_sac"],
     )
     def test_smoke_hopper(self, algorithm, tmp_path):
         cfg = make_cfg(f"algorithm={algorithm}", "env.name=Hopper-v5", *TINY)
         results = rave_mujoco.train(cfg, str(tmp_path))
         assert results["frames"] == 400
         # updates start at F (model-based) or after the random frames, 0.1 per frame
-        start = 200 if algorithm in ("mve", "steve", "rave", "rave_constant") else 100
+        start = 200 if ALGORITHMS[algorithm].model_based else 100
         assert results["updates"] == int(0.1 * (400 - start))
         assert 0.0 <= results["eval/falling_rate"] <= 1.0
         assert np.isfinite(results["eval/return"])

@@ -24,7 +24,17 @@ SMALL = [
     "world_model.termination_cells=16",
     "optim.tau=0.5",  # targets move visibly: a wrong soft update shows
 ]
-ALGORITHMS = ["ddpg", "mve", "steve", "rave", "rave_constant", "td3", "sac"]
+ALGORITHMS = [
+    "ddpg",
+    "mve",
+    "steve",
+    "rave",
+    "rave_constant",
+    "td3",
+    "sac",
+    "steve_sac",
+    "rave_sac",
+]
 
 
 class Spec:
@@ -163,10 +173,11 @@ def test_each_seed_is_its_single_update(algorithm, S, large, monkeypatch):
                 loss, agent.optimizers, agent.target_updater, d[s].clone(), step_actor[i]
             )
             got = outs[i][s]
-            qvalue = algorithm in ("td3", "sac")
+            sac = algorithm.endswith("sac")
+            qvalue = algorithm == "td3" or sac
             names = {"loss_value": "loss_qvalue" if qvalue else "loss_value"}
             keys = ["loss_value", "loss_actor"]
-            if algorithm == "sac":  # SACLoss reports its temperature and entropy instead
+            if sac:  # SACLoss reports its temperature and entropy instead
                 keys += ["loss_alpha", "alpha", "entropy"]
             else:
                 keys += ["target_value", "pred_value", "state_action_value_actor"]

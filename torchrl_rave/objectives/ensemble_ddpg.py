@@ -328,15 +328,8 @@ class EnsembleDDPGLoss(LossModule):
             }
         if isinstance(estimator, ValueExpansionEstimator):
             # the target's diagnostics as scalars (batch means), so that a script logging
-            # the mean of every loss output logs each: alpha, and one entry per horizon
-            # for the weights and variances (``<key>_h<H>``)
-            for key, value in estimator.diagnostics.items():
-                mean = value.detach().reshape(-1, value.shape[-1]).mean(0)
-                if mean.numel() == 1:
-                    metadata[key] = mean.squeeze(-1)
-                else:
-                    for H, entry in enumerate(mean.unbind(0)):
-                        metadata[f"{key}_h{H}"] = entry
+            # the mean of every loss output logs each
+            metadata.update(estimator.diagnostic_scalars())
         return loss, metadata
 
     @dispatch

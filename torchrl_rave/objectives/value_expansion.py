@@ -484,6 +484,36 @@ class ValueExpansionEstimator(ValueEstimatorBase):
         self.__dict__["diagnostics"] = diagnostics
         return target.reshape(*batch_shape, 1)
 
+    def diagnostic_scalars(self) -> dict[str, torch.Tensor]:
+        """The last target's diagnostics as scalars (batch means) a script can log as it
+        logs a loss's outputs: ``<prefix>_alpha``, and one entry per horizon for the
+        weights and the candidate variances (``<prefix>_horizon_weights_h<H>``,
+        ``<prefix>_horizon_variance_h<H>``). Empty before the first target.
+
+        Examples:
+            >>> from torchrl.modules import MLP, Actor, ValueOperator
+            >>> wm = WorldModelEnsemble(3, 1, num_models=2, transition_cells=8,
+            ...                         reward_cells=8, termination_cells=8)
+            >>> est = STEVEEstimator(
+            ...     world_model=wm, actor_network=Actor(MLP(in_features=3, out_features=1)),
+            ...     value_network=ValueOperator(MLP(in_features=4, out_features=1),
+            ...                                 in_keys=["observation", "action"]),
+            ...     gamma=0.9, horizon=1)
+            >>> est.diagnostic_scalars()
+            {}
+        """
+        scalars = {}
+        if self.diagnostics is None:
+            return scalars
+        for key, value in self.diagnostics.items():
+            mean = value.detach().reshape(-1, value.shape[-1]).mean(0)
+            if mean.numel() == 1:
+                scalars[key] = mean.squeeze(-1)
+            else:
+                for H, entry in enumerate(mean.unbind(0)):
+                    scalars[f"{key}_h{H}"] = entry
+        return scalars
+
     def forward(
         self,
         tensordict: TensorDictBase,

@@ -74,6 +74,8 @@ ALGORITHMS = {
     "rave_constant": Algorithm("ensemble_ddpg", "rave", 4, alpha_mode="constant"),
     "td3": Algorithm("td3", None, 2),
     "sac": Algorithm("sac", None, 2),
+    "steve_sac": Algorithm("sac", "steve", 2),
+    "rave_sac": Algorithm("sac", "rave", 2, alpha_mode="adaptive"),
     "ppo": Algorithm("ppo", None, 1),
 }
 # the package a logger backend needs
@@ -158,7 +160,8 @@ def _unknown_key(key: str) -> str:
 
 
 #: the algorithms a seed group trains (ppo runs one seed per process)
-GROUP_ALGORITHMS = ("ddpg", "mve", "steve", "rave", "rave_constant", "td3", "sac")
+GROUP_ALGORITHMS = ("ddpg", "mve", "steve", "rave", "rave_constant", "td3", "sac", "steve_sac",
+                    "rave_sac")  # fmt: skip
 
 
 def check_group(cfg: DictConfig) -> list[str]:

@@ -61,7 +61,8 @@ def key(default, help: str, rule: Rule | None = None, **kw):
     return field(default=default, metadata={"help": help, "rule": rule}, **kw)
 
 
-ALGORITHM_NAMES = ["ddpg", "mve", "steve", "rave", "rave_constant", "td3", "sac", "ppo"]
+ALGORITHM_NAMES = ["ddpg", "mve", "steve", "rave", "rave_constant", "td3", "sac", "steve_sac",
+                   "rave_sac", "ppo"]  # fmt: skip
 COLLECTOR_BACKENDS = ["direct", "process", "ray"]
 LOGGER_BACKENDS = ["", "csv", "tensorboard", "wandb", "mlflow"]
 COMPILE_MODES = [None, "default", "reduce-overhead", "max-autotune", "max-autotune-no-cudagraphs"]
@@ -269,7 +270,7 @@ class NetworkConfig:
     num_layers: int = key(4, "FC layers of actor and critic, output layer included", POSITIVE_INT)
     num_critics: int | None = key(
         None,
-        "K; null: the algorithm's own (ddpg 1; mve, steve, rave 4; td3, sac 2)",
+        "K; null: the algorithm's own (ddpg 1; mve, steve, rave 4; td3, sac, steve_sac, rave_sac 2)",
         optional(POSITIVE_INT),
     )
 
@@ -280,7 +281,7 @@ class EstimatorConfig:
 
     horizon: int = key(3, "H_max, the longest rollout (the fixed H of `mve`)", NON_NEGATIVE_INT)
     alpha: float = key(
-        1.5, "`rave`: the alpha of eq. 12; `rave_constant`: the constant", NON_NEGATIVE
+        1.5, "`rave`, `rave_sac`: the alpha of eq. 12; `rave_constant`: the constant", NON_NEGATIVE
     )
     alpha_error_scale: float = key(1.0, "Z of eq. 12", POSITIVE)
 
@@ -501,8 +502,8 @@ class RecipeConfig:
     seeds: list[int] | None = key(
         None,
         (
-            "train these seeds as one group in one process (`ddpg`, `mve`, `steve`, "
-            "`rave`, `rave_constant`, `td3`, `sac`; not `ppo`): each seed an ordinary run under "
+            "train these seeds as one group in one process (every algorithm but `ppo`): "
+            "each seed an ordinary run under "
             "`<run dir>/seed<s>/` "
             "with `env.seed` set to it, every update batched across the seeds "
             "(`torchrl_rave.trainers.SeedGroup`); null: one run of `env.seed`"
@@ -579,18 +580,22 @@ PRESETS: dict[str, dict] = {
     },
 }  # fmt: skip
 
+_SAC_MUJOCO = {
+    "collector": {"init_random_frames": 5_000},
+    "optim": {"lr_critic": 1.0e-3, "lr_alpha": 1.0e-3},
+}
 #: A preset's values for one algorithm, over the preset's own and under the command line:
 #: where the field publishes other settings for that learner (SAC's learning rates and
-#: random start, PPO's network width).
+#: random start, PPO's network width). SAC with value expansion keeps SAC's values and
+#: pretrains its world model on SAC's random start, so that it learns from the same frame.
 PRESET_ALGORITHMS: dict[str, dict[str, dict]] = {
     "mujoco": {
-        "sac": {
-            "collector": {"init_random_frames": 5_000},
-            "optim": {"lr_critic": 1.0e-3, "lr_alpha": 1.0e-3},
-        },
+        "sac": _SAC_MUJOCO,
+        **{name: {**_SAC_MUJOCO, "world_model": {"pretrain_frames": 5_000}}
+           for name in ("steve_sac", "rave_sac")},
         "ppo": {"network": {"actor_cells": 64, "critic_cells": 64}},
     },
-}
+}  # fmt: skip
 
 
 def preset_values(preset: str, algorithm: str) -> DictConfig:

@@ -785,7 +785,10 @@ class SeedGroup:
             return reward + self.gamma * not_terminated * next_q.min(1)[0], {}
         return self._expansion_target(obs, action, nxt, reward, terminated)
 
-    def _expansion_target(self, obs, action, nxt, reward, terminated):
+    def _expansion_target(self, obs, action, nxt, reward, terminated, temperature=None):
+        """The value-expansion target of every seed; with SAC's ``temperature`` (``[S]``)
+        the soft one, its imagined actions drawn from the current actor as SACLoss draws
+        its next action."""
         wm, H = self.world_model, self.horizon
         N, (S, M, D) = wm.num_models, nxt.shape
         sample = self.rollout == "sample"
@@ -796,8 +799,11 @@ class SeedGroup:
         else:
             alpha = self.alpha
 
-        def policy(s):
-            return self._policy(self.target_actor, s)
+        def policy(s):  # [S, ..., D]; SAC's: (action, log_prob)
+            if not self.sac:
+                return self._policy(self.target_actor, s)
+            a, log_prob = self._sac_action(s.reshape(S, -1, D))
+            return a.view(*s.shape[:-1], a.shape[-1]), log_prob.view(s.shape[:-1])
 
         def step(s, a, per_member):  # [S, M, D] shared by the members, or [S, N, M, D]
             return wm.step(s, a, sample)
@@ -817,7 +823,7 @@ class SeedGroup:
             nxt, reward, terminated, policy=policy, step=step, imagined_reward=imagined_reward,
             termination_prob=termination_prob, critic=critic, num_members=N, horizon=H,
             gamma=self.gamma, mix=self.mix, alpha=alpha, eps=self.variance_eps,
-            moments=_horizon_moments,
+            moments=_horizon_moments, temperature=temperature,
         )  # fmt: skip
         keys = self.diagnostic_keys
         diagnostics = {
@@ -850,11 +856,20 @@ class SeedGroup:
         ``alpha log pi - min_k Q_k`` and the temperature's loss, in SACLoss's order."""
         obs, action, nxt, reward, terminated = self._read(batch)
         alpha = self.log_alpha.detach().exp()  # [S]
+        diagnostics = {}
         with torch.no_grad():
-            next_action, next_log_prob = self._sac_action(nxt)
-            next_q = self._q(self.target_critic, nxt, next_action)  # [S, K, B]
-            next_value = (next_q - alpha.view(-1, 1, 1) * next_log_prob.unsqueeze(1)).min(1)[0]
-            target = reward + self.gamma * (~terminated).int() * next_value
+            if self.expanding:
+                # SACLoss draws its own next action before it asks the estimator: the same
+                # draw, unused, keeps each seed's random stream where its learner's is
+                self._noise(action)
+                target, diagnostics = self._expansion_target(
+                    obs, action, nxt, reward, terminated, temperature=alpha
+                )
+            else:
+                next_action, next_log_prob = self._sac_action(nxt)
+                next_q = self._q(self.target_critic, nxt, next_action)  # [S, K, B]
+                next_value = (next_q - alpha.view(-1, 1, 1) * next_log_prob.unsqueeze(1)).min(1)[0]
+                target = reward + self.gamma * (~terminated).int() * next_value
         current = self._q(self.critic, obs, action)
         loss_value = (current - target.unsqueeze(1)).pow(2).sum(1).mean(-1)
         new_action, log_prob = self._sac_action(obs)
@@ -880,6 +895,7 @@ class SeedGroup:
                 "entropy": -log_prob.detach().mean(-1),
                 "target_value": target,
                 "pred_value": current.detach(),
+                **diagnostics,
             },
             batch_size=[self.num_seeds],
         )
