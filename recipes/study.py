@@ -42,7 +42,7 @@ from torchrl_rave.recipe.checkpoint import RunCheckpoint
 from torchrl_rave.recipe.config import ConfigError
 from torchrl_rave.recipe.group import GROUP_ALGORITHMS
 from torchrl_rave.recipe.runs import Cell, GridStopped, check_cells, launch_grid, train_seconds
-from torchrl_rave.recipe.studies import load_study, result_dir, tasks
+from torchrl_rave.recipe.studies import cells_elsewhere, load_study, result_dir, tasks
 
 ROOT = Path(__file__).resolve().parents[1]
 RECIPE = Path(__file__).resolve().parent / "rave_mujoco.py"
@@ -135,9 +135,9 @@ def missing_cells(study, results: Path, out: Path, group: bool = False) -> dict[
     cells = {}
     for seed in study.seeds:
         for task in tasks(study):
-            if task.cells_from:
-                continue  # another study runs them
             for algorithm in study.algorithms:
+                if cells_elsewhere(study, task.label, algorithm):
+                    continue  # another study runs them
                 dest = result_dir(results, study, task.label, algorithm, seed)
                 if (dest / "cell.json").exists():
                     continue  # done in an earlier session
@@ -152,9 +152,9 @@ def missing_cells(study, results: Path, out: Path, group: bool = False) -> dict[
 def _missing_groups(study, results: Path, out: Path) -> dict[Cell, dict[int, Path] | Path]:
     cells = {}
     for task in tasks(study):
-        if task.cells_from:
-            continue
         for algorithm in study.algorithms:
+            if cells_elsewhere(study, task.label, algorithm):
+                continue  # another study runs them
             dests = {
                 seed: result_dir(results, study, task.label, algorithm, seed)
                 for seed in study.seeds

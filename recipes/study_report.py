@@ -37,7 +37,7 @@ from torchrl_rave.recipe.stats import (
     stratified_interval,
     wilson_interval,
 )
-from torchrl_rave.recipe.studies import load_study, report_frames, tasks
+from torchrl_rave.recipe.studies import cells_elsewhere, load_study, report_frames, tasks
 
 
 def report(args) -> str:
@@ -80,8 +80,9 @@ def report(args) -> str:
         curves, diag, falling, q_bias = {}, {}, {}, {}
         for algorithm in study.algorithms:
             runs = group(study, args.results, task, algorithm)
-            # a task read from another study's cells cost that study, not this one
-            minutes = [] if entry.cells_from else [m / 60 for m in map(train_seconds, runs) if m]
+            # cells read from another study cost that study, not this one
+            elsewhere = cells_elsewhere(study, task, algorithm)
+            minutes = [] if elsewhere else [m / 60 for m in map(train_seconds, runs) if m]
             if minutes:
                 cost.append(
                     f"| {task} | {algorithm} | {len(minutes)} | {min(minutes):.0f} | "

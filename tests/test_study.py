@@ -438,6 +438,36 @@ def test_a_task_can_read_another_studys_cells_up_to_its_own_budget(tmp_path):
     assert "What the finished cells cost" not in table  # the longer study paid for them
 
 
+def test_an_algorithm_can_read_another_studys_cells(tmp_path):
+    """``algorithm_cells_from``: ddpg's cells are the other study's on every task; this
+    study runs only its td3 cells, keeps them under its own name, and reads ddpg's there."""
+    results = tmp_path / "results"
+    for seed, (a, b) in enumerate([(1, 2), (3, 4)]):
+        cell = results / "base" / "Hopper-v5" / "ddpg" / f"seed{seed}"
+        for metric, rows in {"eval/return": [(100, a), (200, b)],
+                             "time/update_s": [(100, 60), (200, 60)]}.items():  # fmt: skip
+            csv = cell / "ddpg" / "scalars" / f"{metric}.csv"
+            csv.parent.mkdir(parents=True, exist_ok=True)
+            csv.write_text("".join(f"{step},{value}\n" for step, value in rows))
+        (cell / "cell.json").write_text(json.dumps({"config": {"eval": {"episodes": 10}}}))
+    config = write_study(tmp_path, algorithms=["td3", "ddpg"],
+                         algorithm_cells_from={"ddpg": "base"})  # fmt: skip
+    loaded = study.load_study(config)
+    cells = study.missing_cells(loaded, results, tmp_path / "runs")
+    # td3's cells, kept under this study's name
+    assert sorted(d.relative_to(results).as_posix() for d in cells.values()) == [
+        "tiny/Hopper-v5/td3/seed0", "tiny/Hopper-v5/td3/seed1"]  # fmt: skip
+    grouped = study.missing_cells(loaded, results, tmp_path / "runs", group=True)
+    assert [c.overrides[0] for c in grouped] == ["algorithm=td3"]
+    assert study.result_dir(results, loaded, "Hopper-v5", "ddpg", 1) == (
+        results / "base" / "Hopper-v5" / "ddpg" / "seed1"
+    )
+    for bad in ({"ppo": "base"}, {"ddpg": "tiny"}):
+        with pytest.raises(ValueError, match="algorithm_cells_from maps one of"):
+            study.load_study(write_study(tmp_path, algorithms=["td3", "ddpg"],
+                                         algorithm_cells_from=bad))  # fmt: skip
+
+
 @pytest.mark.parametrize(
     "name", sorted(p.stem for p in (Path(study.__file__).parent / "study").glob("*.yaml"))
 )
@@ -448,8 +478,13 @@ def test_every_committed_study_makes_valid_cells(name, tmp_path):
 
     loaded = study.load_study(Path(study.__file__).parent / "study" / f"{name}.yaml")
     cells = study.missing_cells(loaded, tmp_path / "results", tmp_path / "runs")
-    own = [t for t in study.tasks(loaded) if not t.cells_from]  # a twin's cells run elsewhere
-    expected = len(own) * len(loaded.algorithms) * len(loaded.seeds)
+    own = [
+        (t.label, a)
+        for t in study.tasks(loaded)
+        for a in loaded.algorithms
+        if not study.cells_elsewhere(loaded, t.label, a)
+    ]  # a twin's cells run elsewhere
+    expected = len(own) * len(loaded.seeds)
     assert len(cells) == expected
     for cell in cells:
         cfg = make_cfg(*cell.overrides, f"collector.total_frames={cell.frames}")

@@ -46,7 +46,7 @@ def tasks(study: DictConfig) -> list[Task]:
 
 
 STUDY_KEYS = ("name", "tasks", "algorithms", "seeds", "frames", "overrides", "contrasts",
-              "report_at", "reference_runs")  # fmt: skip
+              "report_at", "reference_runs", "algorithm_cells_from")  # fmt: skip
 TASK_KEYS = ("label", "env", "overrides", "reference", "cells_from")
 
 
@@ -57,8 +57,11 @@ def load_study(path: Path) -> DictConfig:
     read the metrics; half and all of the budget by default) and its ``reference_runs``
     (optional: the directory under the results, laid out as the study's cells, of a
     reference implementation's runs of the same tasks, algorithms and seeds, which the
-    report's calibration table sets beside the study's own). Every problem is raised at
-    once, as one :class:`~torchrl_rave.recipe.config.ConfigError`."""
+    report's calibration table sets beside the study's own) and its
+    ``algorithm_cells_from`` (optional: algorithm -> the study whose cells of that
+    algorithm, same task labels and seeds, this study reads instead of running them).
+    Every problem is raised at once, as one
+    :class:`~torchrl_rave.recipe.config.ConfigError`."""
     study = OmegaConf.load(path)
     problems = [f"the study has no {key!r}" for key in STUDY_KEYS[:5] if key not in study]
     problems += [
@@ -99,6 +102,13 @@ def load_study(path: Path) -> DictConfig:
     for pair in study.get("contrasts", None) or []:
         if len(pair) != 2 or not set(pair) <= set(labels):
             problems.append(f"a contrast is two of the task labels {labels}, got {list(pair)}")
+    borrowed = study.get("algorithm_cells_from", None) or {}
+    for algorithm, source in borrowed.items():
+        if algorithm not in algorithms or not isinstance(source, str) or source == study.name:
+            problems.append(
+                f"algorithm_cells_from maps one of the algorithms {algorithms} to another "
+                f"study's name, got {algorithm}: {source!r}"
+            )
     at = list(study.get("report_at", None) or [])
     if not all(isinstance(f, int) and 0 < f <= study.frames for f in at) or at != sorted(set(at)):
         problems.append(
@@ -115,8 +125,16 @@ def report_frames(study: DictConfig) -> list[int]:
     return list(study.get("report_at", None) or [study.frames // 2, study.frames])
 
 
+def cells_elsewhere(study: DictConfig, task: str, algorithm: str) -> str | None:
+    """The study that runs and keeps the cells of (task label, algorithm): the one the
+    algorithm's ``algorithm_cells_from`` entry names, or the task's ``cells_from``;
+    ``None`` when this study runs them."""
+    borrowed = (study.get("algorithm_cells_from", None) or {}).get(algorithm)
+    return borrowed or next((t.cells_from for t in tasks(study) if t.label == task), None)
+
+
 def result_dir(results: Path, study: DictConfig, task: str, algorithm: str, seed: int) -> Path:
     """Where the finished cell of (task label, algorithm, seed) is kept: under the study's
-    name, or under the one its task's ``cells_from`` names."""
-    source = next((t.cells_from for t in tasks(study) if t.label == task), None)
+    name, or under the one :func:`cells_elsewhere` names."""
+    source = cells_elsewhere(study, task, algorithm)
     return results / (source or study.name) / task / algorithm / f"seed{seed}"
