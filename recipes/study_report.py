@@ -53,6 +53,8 @@ def report(args) -> str:
         )
     out.mkdir(parents=True, exist_ok=True)
     at = report_frames(study)
+    # the algorithm the others are measured against: RAVE on its paper's base, else on SAC's
+    subject = next((a for a in ("rave", "rave_sac") if a in study.algorithms), None)
     # the published reference is at 100k frames: beside a shorter study it would mislead
     with_ref = study.frames >= 100_000
     # one evaluation is 10 episodes of one policy snapshot; the evaluations of the last
@@ -126,7 +128,7 @@ def report(args) -> str:
                 )
                 s, v = series(runs, "eval/q_bias", until)
                 q_bias[label] = (s, v.mean(0), v.min(0), v.max(0))
-            if algorithm == "rave":
+            if algorithm == subject:
                 diag = {k: series(runs, f"train/{k}", until) for k in RAVE_DIAGNOSTICS}
             weights = [
                 tail_means(runs, f"train/horizon_weight_h{h}", tail_from, until) for h in range(4)
@@ -164,17 +166,17 @@ def report(args) -> str:
                         + " |"
                     )  # fmt: skip
                     finals[when, task, algorithm] = scores
-        rave = measured[task, "rave"] if "rave" in study.algorithms else None
-        for other in (a for a in study.algorithms if rave is not None and a != "rave"):
+        rave = measured[task, subject] if subject else None
+        for other in (a for a in study.algorithms if rave is not None and a != subject):
             theirs = measured[task, other]
             row = differences(rave["return"], theirs["return"])
             if row is not None:
-                versus.append(f"| {task} | rave - {other} | " + " | ".join(row) + " |")
+                versus.append(f"| {task} | {subject} - {other} | " + " | ".join(row) + " |")
             falls_row = differences(rave["falling_rate"], theirs["falling_rate"], 2)
             bias_row = differences(rave["q_bias"], theirs["q_bias"])
             if falls_row is not None and bias_row is not None:
                 versus_more.append(
-                    f"| {task} | rave - {other} | " + " | ".join(falls_row + bias_row) + " |"
+                    f"| {task} | {subject} - {other} | " + " | ".join(falls_row + bias_row) + " |"
                 )
         study_figures(
             out / f"{study.name}_{task}", f"{task}, {study.name}", curves, diag, falling, q_bias
@@ -197,12 +199,12 @@ def report(args) -> str:
         robust,
     )
     improves = []
-    for when in dict.fromkeys(w for w, _, _ in finals) if "rave" in study.algorithms else []:
-        for other in (a for a in study.algorithms if a != "rave"):
+    for when in dict.fromkeys(w for w, _, _ in finals) if subject else []:
+        for other in (a for a in study.algorithms if a != subject):
             per_task = {
-                t.label: (finals[when, t.label, "rave"], finals[when, t.label, other])
+                t.label: (finals[when, t.label, subject], finals[when, t.label, other])
                 for t in tasks(study)
-                if (when, t.label, "rave") in finals and (when, t.label, other) in finals
+                if (when, t.label, subject) in finals and (when, t.label, other) in finals
             }
             chosen = [(label, [pair]) for label, pair in per_task.items()]
             if len(per_task) > 1:
@@ -210,7 +212,7 @@ def report(args) -> str:
             for label, pairs in chosen:
                 xs, ys = zip(*pairs, strict=True)
                 improves.append(
-                    f"| {label} | {when} | rave > {other} | "
+                    f"| {label} | {when} | {subject} > {other} | "
                     + fmt_bootstrap(improvement_interval(list(xs), list(ys)), 2)
                     + " |"
                 )
@@ -218,7 +220,7 @@ def report(args) -> str:
         "The probability that a RAVE run's evaluation return beats another algorithm's "
         "(ties count half; over all tasks: the mean over tasks), with a 95 % percentile "
         f"interval from {BOOTSTRAP}; 0.5 is no difference.",
-        ["task", "when", "comparison", "P(rave > other) [95 % CI]"],
+        ["task", "when", "comparison", f"P({subject or 'rave'} > other) [95 % CI]"],
         improves,
     )
     lines += section(
