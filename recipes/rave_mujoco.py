@@ -6,7 +6,8 @@ python recipes/rave_mujoco.py preset=paper env.name=HalfCheetah-v5           # p
 python recipes/rave_mujoco.py resume=outputs/2026-11-22/10-00-00             # continue a run
 
 ``algorithm`` picks ddpg | mve | steve | rave | rave_constant (the estimator settings of one
-K-critic DDPG learner) or td3 | sac | ppo (TorchRL's losses; ppo learns on-policy). The pieces come from
+K-critic DDPG learner), td3 | sac | ppo (TorchRL's losses; ppo learns on-policy) or
+steve_sac | rave_sac (SAC with a value-expansion target). The pieces come from
 ``torchrl_rave.recipe`` (the loop is ``torchrl_rave.recipe.loop.train``, which the installed
 ``torchrl-rave-train`` command runs too); this file reads ``config.yaml`` beside it. See
 recipes/README.md for every key and metric.

@@ -236,8 +236,8 @@ def main(argv: list[str] | None = None):
     sub.choices["run"].add_argument(
         "--group",
         action="store_true",
-        help="run the missing seeds of each (task, algorithm) as one seed group (ddpg, mve, "
-        "steve, rave, rave_constant, td3, sac; seeds=[...]), still one committed cell per seed",
+        help="run the missing seeds of each (task, algorithm) as one seed group "
+        f"({', '.join(GROUP_ALGORITHMS)}; seeds=[...]), still one committed cell per seed",
     )
     sub.choices["report"].add_argument("--figures", type=Path, default=ROOT / "docs" / "figures")
     cmp = sub.choices["compare"]
