@@ -62,7 +62,8 @@ METRICS: dict[str, str] = {
         "mean of the critics' estimate of Q(s_t, pi(s_t)) minus the discounted Monte-Carlo "
         "return from s_t (``optim.gamma``, env reward units). The estimate is what each loss "
         "bootstraps from: the mean over the K critics (ddpg, mve, steve, rave), the minimum "
-        "of the two (td3, sac; SAC's also holds the entropy bonus of later steps), V(s_t) "
+        "of the two (td3, and sac, steve_sac and rave_sac, whose critics also hold the entropy "
+        "bonus of later steps), V(s_t) "
         "(ppo). States counted: every state of an episode that terminated and, of one cut "
         "by the time limit, those with gamma^(T - t) < 0.01"
     ),
