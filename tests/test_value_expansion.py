@@ -37,6 +37,7 @@ from torchrl_rave import (
     patch_value_estimator_setter,
 )
 from torchrl_rave.modules import TensorCall
+from torchrl_rave.objectives.target_networks import TargetNetworks
 
 S, A = 3, 2
 
@@ -630,11 +631,17 @@ class TestNoGradientThroughTarget:
 class TestFastCalls:
     """The planned tensor calls give the TensorDict path's target exactly."""
 
-    @pytest.mark.parametrize("make_loss", [ensemble_loss, td3_loss])
+    @pytest.mark.parametrize("make_loss", [ensemble_loss, td3_loss, sac_loss])
     def test_same_target_and_diagnostics(self, make_loss):
         loss = make_loss()
-        perturb(loss.target_actor_network_params)
-        critic_name = "value" if hasattr(loss, "target_value_network_params") else "qvalue"
+        if make_loss is sac_loss:  # SAC's actor: its MLP planned, its draws the same
+            assert TargetNetworks.of_loss(loss).calls.gaussian_actor(loss.actor_network)
+            perturb(loss.actor_network_params)
+        else:
+            perturb(loss.target_actor_network_params)
+        critic_name = (
+            "value" if getattr(loss, "target_value_network_params", None) is not None else "qvalue"
+        )
         perturb(getattr(loss, f"target_{critic_name}_network_params"))
         out = {}
         for fast in (False, True):

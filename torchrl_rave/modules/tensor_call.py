@@ -27,6 +27,7 @@ from collections.abc import Mapping
 import torch
 from tensordict import TensorDict, TensorDictBase
 from tensordict.nn import (
+    NormalParamExtractor,
     TensorDictModule,
     TensorDictModuleBase,
     TensorDictParams,
@@ -213,6 +214,40 @@ class TensorCall:
             return None
         return [("module", prefix if has_state else None, module)]
 
+    @classmethod
+    def plan_gaussian_actor(cls, actor: TensorDictModuleBase):
+        """A Gaussian policy as it is built in TorchRL's sota SAC script and the recipe,
+        ``ProbabilisticActor(TensorDictModule(Sequential(<MLP>, NormalParamExtractor),
+        out_keys=[loc, scale]), ...)``, planned: ``(call, extractor, head)`` with ``call``
+        the MLP as tensor calls (output ``"loc_scale"``, parameters keyed as in the actor's
+        own), ``extractor`` the ``NormalParamExtractor`` and ``head`` the distribution
+        module (its ``get_dist`` takes the extractor's outputs under the first module's
+        ``out_keys``). ``None`` for any other actor, which then runs as a module."""
+        try:
+            first, head = actor.module[0], actor.module[-1]
+            mlp, extractor = first.module[0], first.module[-1]
+        except (AttributeError, IndexError, TypeError, KeyError):
+            return None
+        if (
+            len(actor.module) != 2
+            or not hasattr(head, "get_dist")
+            or type(first).forward is not TensorDictModule.forward
+            or not isinstance(first.module, nn.Sequential)
+            or len(first.module) != 2
+            or not isinstance(extractor, NormalParamExtractor)
+            or len(first.out_keys) != 2
+        ):
+            return None
+        layers = _linear_layers(mlp, ("module", "0", "module", "0"))
+        if layers is None:
+            return None
+        layers = [
+            (is_linear, layer, *(cls._param_keys(key, layer) if is_linear else ()))
+            for key, is_linear, layer in layers
+        ]
+        call = cls([("mlp", list(first.in_keys), "loc_scale", layers)], ["loc_scale"])
+        return call, extractor, head
+
     @staticmethod
     def _param_keys(key: tuple[str, ...], layer: nn.Linear) -> tuple:
         names = ["weight"] + (["bias"] if layer.bias is not None else [])
@@ -328,6 +363,16 @@ class PlannedCalls:
         key = (name, stacked)
         if key not in self._plans:
             self._plans[key] = TensorCall.plan(module, stacked=stacked)
+        return self._plans[key]
+
+    def gaussian_actor(self, actor: TensorDictModuleBase):
+        """:meth:`TensorCall.plan_gaussian_actor` of ``actor``, made once; ``None`` while
+        ``enabled`` is off or when it cannot be planned."""
+        if not self.enabled:
+            return None
+        key = ("gaussian_actor", False)
+        if key not in self._plans:
+            self._plans[key] = TensorCall.plan_gaussian_actor(actor)
         return self._plans[key]
 
     def actions(

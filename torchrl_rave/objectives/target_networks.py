@@ -184,9 +184,19 @@ class TargetNetworks:
         log-probabilities ``[*B]`` for observations ``[*B, S]``, drawn as ``SACLoss`` draws
         its next action (``get_dist`` under random exploration, one ``rsample`` scored with
         its own log-probability)."""
-        td = TensorDict({keys.observation: obs}, batch_size=obs.shape[:-1])
         actor = self.actor_network
+        planned = self.calls.gaussian_actor(actor)
         with set_exploration_type(ExplorationType.RANDOM):
+            if planned is not None:  # the MLP as tensor calls, the distribution as built
+                call, extractor, head = planned
+                flat = obs.reshape(-1, obs.shape[-1])
+                loc, scale = extractor(call(params, {keys.observation: flat})["loc_scale"])
+                names = actor.module[0].out_keys
+                dist = head.get_dist(TensorDict(dict(zip(names, (loc, scale), strict=True)),
+                                                batch_size=flat.shape[:-1]))  # fmt: skip
+                action, log_prob = compute_rsample_log_prob(dist)
+                return action.reshape(*obs.shape[:-1], -1), log_prob.reshape(obs.shape[:-1])
+            td = TensorDict({keys.observation: obs}, batch_size=obs.shape[:-1])
             if params is None:
                 return compute_rsample_log_prob(actor.get_dist(td))
             with params.to_module(actor, preserve_module_state=False):

@@ -54,7 +54,6 @@ from collections.abc import Callable, Sequence
 
 import torch
 from tensordict import TensorDict, TensorDictBase
-from tensordict.nn import NormalParamExtractor
 from torch.distributions.utils import _sum_rightmost
 from torch.nn import functional as F
 from torchrl.objectives import SACLoss, TD3Loss
@@ -65,7 +64,7 @@ from torchrl_rave.modules.ensemble import (
     ensemble_affine,
     inplace_activation,
 )
-from torchrl_rave.modules.tensor_call import TensorCall, _leaf, _linear_layers
+from torchrl_rave.modules.tensor_call import TensorCall, _leaf
 from torchrl_rave.objectives import functional as VF
 from torchrl_rave.objectives.ensemble_ddpg import EnsembleDDPGLoss
 from torchrl_rave.objectives.value_expansion import ValueExpansionEstimator
@@ -247,28 +246,16 @@ def _mlp_layers(
 
 
 def _sac_actor_plan(loss) -> TensorCall:
-    """A plan of the MLP inside the recipe's SAC actor (``ProbabilisticActor`` over
-    ``TensorDictModule(Sequential(MLP, NormalParamExtractor))``): its linear layers, keyed
-    as in the loss's ``actor_network_params``; the extractor and the tanh-Gaussian are
-    applied by the group itself."""
-    actor = loss.actor_network
-    try:
-        head = actor.module[0].module
-        mlp, extractor = head[0], head[1]
-    except (AttributeError, IndexError, TypeError):
+    """The MLP inside the SAC actor as tensor calls
+    (:meth:`~torchrl_rave.modules.TensorCall.plan_gaussian_actor`), keyed as in the loss's
+    ``actor_network_params``; the extractor and the tanh-Gaussian are applied by the group."""
+    planned = TensorCall.plan_gaussian_actor(loss.actor_network)
+    if planned is None:
         raise ValueError(
-            "a seed group's SAC actor is the recipe's (MLP + NormalParamExtractor)"
-        ) from None
-    if not isinstance(extractor, NormalParamExtractor):
-        raise ValueError("a seed group's SAC actor ends in a NormalParamExtractor")
-    entries = _linear_layers(mlp, ("module", "0", "module", "0"))
-    if entries is None:
-        raise ValueError("a seed group's SAC actor is a plain MLP")
-    entries = [
-        (is_linear, layer, *(TensorCall._param_keys(key, layer) if is_linear else ()))
-        for key, is_linear, layer in entries
-    ]
-    return TensorCall([("mlp", list(actor.module[0].in_keys), "loc_scale", entries)], [])
+            "a seed group's SAC actor is a ProbabilisticActor over "
+            "TensorDictModule(Sequential(<MLP>, NormalParamExtractor)), as the recipe builds it"
+        )
+    return planned[0]
 
 
 class _GroupedNormalizer:
