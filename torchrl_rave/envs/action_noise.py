@@ -26,7 +26,7 @@ class ActuatorNoise(gym.Wrapper):
     the action range, like the recipe's ``exploration.sigma``. The agent observes, and a
     TorchRL replay buffer stores, the commanded action: the noise is part of the
     environment's dynamics. The applied action of the last step is
-    :attr:`applied_action`, and ``info["applied_action"]``.
+    ``applied_action``, and ``info["applied_action"]``.
 
     The noise has its own generator, seeded by ``reset(seed=s)`` (which TorchRL's
     ``env.set_seed`` calls) from ``s`` and a fixed stream key: the same seed gives the same

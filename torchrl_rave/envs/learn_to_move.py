@@ -12,9 +12,9 @@ SciPy's removed ``interp2d``).
 
 **Action**: 22 muscle excitations in ``[0, 1]``, each held for one 0.01 s step, in the
 challenge's order: ``HAB, HAD, HFL, GLU, HAM, RF, VAS, BFSH, GAS, SOL, TA`` of the right
-leg, then of the left (:data:`ACTION_MUSCLES`).
+leg, then of the left (``ACTION_MUSCLES``).
 
-**Observation** (339 numbers, :data:`OBSERVATION_LAYOUT`): first the target-velocity
+**Observation** (339 numbers, ``OBSERVATION_LAYOUT``): first the target-velocity
 field around the pelvis in the body frame, ``2 x 11 x 11`` (forward then leftward
 component, at forward offsets -5..5 m by leftward offsets -5..5 m), then 97 numbers of the
 body: pelvis height, pitch and roll, its forward, leftward and upward velocity and its
@@ -27,7 +27,7 @@ isometric force, its fiber length and velocity over its optimal fiber length.
 1,000 steps (``difficulty`` 0 to 2, the challenge's round 1) or 2,500 steps
 (``difficulty=3``, round 2).
 
-**Reward**, per step, the sum of six terms (:data:`REWARD_TERMS`; each step's are in
+**Reward**, per step, the sum of six terms (``REWARD_TERMS``; each step's are in
 ``info["reward_terms"]``, 0 where a term does not apply):
 
 - ``alive``: 0.1;
@@ -416,7 +416,7 @@ class LearnToMoveEnv(gym.Env):
 
     @property
     def target_range(self) -> tuple[float, float]:
-        """The range every number of the target field (:attr:`target_observation`) can
+        """The range every number of the target field (``target_observation``) can
         take at this env's settings: each component of a target velocity in the body
         frame lies in ``[-v, v]``, ``v`` the field's largest speed (``constant_speed`` at
         difficulty 0, the high end of ``speed_range`` otherwise), whatever the heading.

@@ -36,7 +36,7 @@ def network_sizes(
     return out
 
 
-#: the named world-model sizes: ``cpu`` (the default), ``paper`` (STEVE's released widths)
+#: The named world-model sizes, ``cpu`` (the default), ``paper`` (STEVE's released widths)
 #: and ``mujoco`` (an MBPO member's transition network)
 WORLD_MODEL_SIZES: dict[str, dict[str, int]] = {
     "cpu": network_sizes(transition=(64, 4), reward=(64, 3), termination=(64, 3)),
@@ -112,8 +112,11 @@ class WorldModelEnsemble(TensorDictModuleBase):
             or its list of hidden widths.
         transition_layers (int, optional): FC layers of the transition model including
             the output layer (ignored when ``transition_cells`` is a list).
-        reward_cells, reward_layers (optional): same for the reward model.
-        termination_cells, termination_layers (optional): same for the termination model.
+        reward_cells (int or Sequence[int], optional): the same for the reward model.
+        reward_layers (int, optional): the same for the reward model.
+        termination_cells (int or Sequence[int], optional): the same for the termination
+            model.
+        termination_layers (int, optional): the same for the termination model.
         activation (type[nn.Module]): hidden activation. Defaults to ReLU.
         observation_key (NestedKey): observation entry for :meth:`forward`.
         action_key (NestedKey): action entry for :meth:`forward`.

@@ -54,7 +54,9 @@ class TargetNetworks:
         value_network (TensorDictModuleBase): ``(observation, action) -> value``.
 
     Keyword Args:
-        actor_params, value_params (TensorDictBase, optional): fixed parameters to use.
+        actor_params (TensorDictBase, optional): fixed actor parameters to use.
+        value_params (TensorDictBase, optional): fixed critic parameters to use, optionally
+            stacked with a leading ensemble dimension ``K``.
         fast_calls (bool): plan the networks as tensor calls where possible. Defaults to ``True``.
         stochastic (bool): the actor is a probabilistic one. Defaults to ``False``.
         temperature (float or Tensor, optional): the entropy temperature of a stochastic

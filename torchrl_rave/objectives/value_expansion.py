@@ -161,8 +161,9 @@ class ValueExpansionEstimator(ValueEstimatorBase):
             time); when given, ``actor_params``, ``value_params``, ``fast_calls`` and the
             temperature are its own. Defaults to ``None``: built from the arguments above.
         temperature (float, optional): with a probabilistic ``actor_network`` (SAC's), the
-            entropy temperature of the soft target (see :func:`~torchrl_rave.objectives.
-            functional.value_expansion_target`); :meth:`for_loss` reads a ``SACLoss``'s at
+            entropy temperature of the soft target (see
+            :func:`~torchrl_rave.objectives.functional.value_expansion_target`);
+            :meth:`for_loss` reads a ``SACLoss``'s at
             call time instead. Defaults to ``None``: a deterministic actor.
         device (torch.device, optional): where the buffers live.
 
@@ -603,8 +604,12 @@ class RAVEValueEstimator(ValueExpansionEstimator):
     ensemble".
 
     Keyword Args:
-        world_model, actor_network, value_network, gamma, horizon: as for
-            :class:`ValueExpansionEstimator` (``for_loss`` takes the networks from a loss).
+        world_model (WorldModelEnsemble): as for :class:`ValueExpansionEstimator`.
+        actor_network (TensorDictModuleBase): as for :class:`ValueExpansionEstimator`
+            (:meth:`~ValueExpansionEstimator.for_loss` takes the networks from a loss).
+        value_network (TensorDictModuleBase): as for :class:`ValueExpansionEstimator`.
+        gamma (float): the discount.
+        horizon (int): ``H_max``. Defaults to 3.
         alpha (float): the constant ``alpha``. Defaults to 1.5.
         alpha_mode (str): ``"adaptive"`` (eq. 12, the default), ``"constant"``, or
             ``"tensordict"`` (read the :class:`~torchrl_rave.transforms.AdaptiveAlpha`

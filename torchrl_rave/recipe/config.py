@@ -65,7 +65,7 @@ class Algorithm:
         return self.loss == "ppo"
 
 
-#: ``algorithm=`` name -> its :class:`Algorithm` (loss, value estimator, critics K)
+#: ``algorithm=`` name -> its ``Algorithm`` (loss, value estimator, critics K)
 ALGORITHMS = {
     "ddpg": Algorithm("ensemble_ddpg", None, 1),
     "mve": Algorithm("ensemble_ddpg", "mve", 4),

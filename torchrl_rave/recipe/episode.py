@@ -75,10 +75,10 @@ class EpisodeCheckpoint:
     """The episode in progress of a run's training env and its collector, as a
     checkpoint component (``state_dict``/``load_state_dict``, plain data and tensors).
 
-    :meth:`attach` names the env and collector whose episode :meth:`state_dict` saves;
+    ``attach`` names the env and collector whose episode ``state_dict`` saves;
     ``attach(None, None)`` says that the run starts new episodes next (a curriculum's new
     stage, in new envs), which a resumed run then does too.
-    :meth:`load_state_dict` keeps a saved episode until :meth:`restore` rebuilds it in
+    ``load_state_dict`` keeps a saved episode until :meth:`restore` rebuilds it in
     a new collector: the direct collector's, or each worker's of a ``MultiSyncCollector``
     or ``RayCollector`` of :class:`EpisodeWorkerCollector` workers. An episode that
     cannot be saved (an env without an ``EpisodeReplay``, workers that act with older

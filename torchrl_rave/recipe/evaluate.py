@@ -110,10 +110,10 @@ def evaluate(
     reward_scale: float = 1.0,
 ) -> dict[str, float]:
     """Deterministic-policy episodes: return mean/std, length, and the falling rate.
-    NaN/inf in an observation or reward raises :class:`NonFiniteEnvOutput`.
+    NaN/inf in an observation or reward raises ``NonFiniteEnvOutput``.
 
     With ``value`` (the critics' estimate ``[T]`` of the return from each step's state and
-    action, e.g. :func:`~torchrl_rave.recipe.agent.bootstrap_value`), the value error is
+    action, e.g. ``torchrl_rave.recipe.agent.bootstrap_value``), the value error is
     measured too (:func:`value_error`): at the steps :func:`value_error_states` keeps, the
     estimate against the discounted Monte-Carlo return of the episode's own rewards with
     ``gamma``, both divided by ``reward_scale`` (environment reward units). The actions

@@ -550,7 +550,7 @@ class RecipeConfig:
     logger: LoggerConfig = field(default_factory=LoggerConfig)
 
 
-#: The presets: what each changes from the schema's defaults (which are the CPU preset).
+#: The presets, with what each changes from the schema's defaults (which are the CPU preset).
 #: ``paper``: the paper's MuJoCo hyper-parameters (appendix table), sized for a GPU; the
 #: world model's widths are STEVE's released ones (``modules.world_model.WORLD_MODEL_SIZES``).
 #: ``mujoco``: the field's sizes and settings for MuJoCo tasks (2 x 256 networks, batch 256,

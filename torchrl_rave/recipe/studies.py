@@ -12,7 +12,8 @@ from omegaconf import DictConfig, OmegaConf
 from torchrl_rave._checks import NON_NEGATIVE_INT, POSITIVE_INT
 from torchrl_rave.recipe.config import ALGORITHMS, ConfigError
 
-__all__ = ["STUDY_KEYS", "TASK_KEYS", "Task", "load_study", "report_frames", "result_dir", "tasks"]
+__all__ = ["STUDY_KEYS", "TASK_KEYS", "Task", "cells_elsewhere", "load_study", "report_frames",
+           "result_dir", "tasks"]  # fmt: skip
 
 
 @dataclass(frozen=True)
@@ -135,6 +136,6 @@ def cells_elsewhere(study: DictConfig, task: str, algorithm: str) -> str | None:
 
 def result_dir(results: Path, study: DictConfig, task: str, algorithm: str, seed: int) -> Path:
     """Where the finished cell of (task label, algorithm, seed) is kept: under the study's
-    name, or under the one :func:`cells_elsewhere` names."""
+    name, or under the one :func:`~torchrl_rave.recipe.studies.cells_elsewhere` names."""
     source = cells_elsewhere(study, task, algorithm)
     return results / (source or study.name) / task / algorithm / f"seed{seed}"

@@ -14,8 +14,8 @@ __all__ = ["Curriculum"]
 class Curriculum:
     """Stages of one env setting (e.g. ``LearnToMove-v0``'s ``constant_speed``), first to
     last. :meth:`update` moves to the next stage when ``metrics[metric]`` reaches the
-    current stage's threshold; the last stage stays. :attr:`stage` is all its state
-    (:meth:`state_dict`).
+    current stage's threshold; the last stage stays. ``stage`` is all its state
+    (``state_dict``).
 
     Args:
         values (Sequence): the setting's value at each stage.

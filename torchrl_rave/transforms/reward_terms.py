@@ -74,7 +74,7 @@ class RewardTermsReader(BaseInfoDictReader):
 
 class ReweightRewardTerms(Transform):
     """Replay-buffer transform: ``("next", "reward") = scale * sum_k w_k term_k`` from the
-    stored ``("next", "reward_terms", k)``, with the weights :attr:`weights` holds when
+    stored ``("next", "reward_terms", k)``, with the weights ``weights`` holds when
     the batch is sampled (a term not in it has weight 1).
 
     Args:
@@ -128,7 +128,7 @@ class DelayedWeight:
     """A weight that is 0 until a start condition, then ramps linearly to ``weight`` over
     ``ramp_frames`` frames (at once with 0). It starts at the first :meth:`update` whose
     frame count reaches ``start_frames``, or whose ``metrics[metric]`` reaches
-    ``threshold``, whichever comes first; :attr:`started_at` (the frame count then, or
+    ``threshold``, whichever comes first; ``started_at`` (the frame count then, or
     ``None``) is all its state.
 
     Args:
