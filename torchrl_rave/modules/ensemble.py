@@ -270,9 +270,22 @@ class GaussianEnsembleMLP(nn.Module):
         h = self.trunk.activate(self.trunk(x, per_member=per_member))
         mean = self.mean_head._affine(h)  # h is the trunk's own output
         raw = self.logvar_head._affine(h)
-        logvar = self.max_logvar - F.softplus(self.max_logvar - raw)
-        logvar = self.min_logvar + F.softplus(logvar - self.min_logvar)
-        return mean, logvar
+        return mean, self.bounded_logvar(raw, self.max_logvar, self.min_logvar)
+
+    @staticmethod
+    def bounded_logvar(
+        raw: torch.Tensor, max_logvar: torch.Tensor, min_logvar: torch.Tensor
+    ) -> torch.Tensor:
+        """The raw log-variance squashed between the bounds (any leading dimensions that
+        broadcast): ``max - softplus(max - raw)``, then ``min + softplus(logvar - min)``.
+
+        Examples:
+            >>> GaussianEnsembleMLP.bounded_logvar(
+            ...     torch.tensor([-50.0, 0.0, 50.0]), torch.tensor(1.0), torch.tensor(-10.0))
+            tensor([-10.0000,  -0.3132,   1.0000])
+        """
+        logvar = max_logvar - F.softplus(max_logvar - raw)
+        return min_logvar + F.softplus(logvar - min_logvar)
 
     def bound_penalty(self) -> torch.Tensor:
         """``sum(max_logvar) - sum(min_logvar)``: pulls the learned bounds together."""

@@ -75,7 +75,12 @@ class RunningNormalizer(nn.Module):
 
     @property
     def std(self) -> torch.Tensor:
-        return self.var.sqrt().clamp_min(self.min_std)
+        return self.floored_std(self.var, self.min_std)
+
+    @staticmethod
+    def floored_std(var: torch.Tensor, min_std: float) -> torch.Tensor:
+        """The standard deviation of variances ``var`` (any shape), at least ``min_std``."""
+        return var.sqrt().clamp_min(min_std)
 
     def normalize(self, x: torch.Tensor) -> torch.Tensor:
         return (x - self.mean) / self.std

@@ -61,9 +61,11 @@ from torchrl.objectives import SACLoss, TD3Loss
 from torchrl_rave.modules.ensemble import (
     EnsembleLinear,
     EnsembleMLP,
+    GaussianEnsembleMLP,
     ensemble_affine,
     inplace_activation,
 )
+from torchrl_rave.modules.normalizer import RunningNormalizer
 from torchrl_rave.modules.tensor_call import TensorCall, _leaf
 from torchrl_rave.objectives import functional as VF
 from torchrl_rave.objectives.ensemble_ddpg import EnsembleDDPGLoss
@@ -272,7 +274,9 @@ class _GroupedNormalizer:
     def _stats(self, x: Tensor):
         # [S, 1, ..., F]: broadcasts against [S, *members, rows, F]
         shape = (x.shape[0],) + (1,) * (x.dim() - 2) + (x.shape[-1],)
-        return self.mean.view(shape), self.var.sqrt().clamp_min(self.min_std).view(shape)
+        return self.mean.view(shape), RunningNormalizer.floored_std(self.var, self.min_std).view(
+            shape
+        )
 
     def normalize(self, x: Tensor) -> Tensor:
         mean, std = self._stats(x)
@@ -345,9 +349,8 @@ class _GroupedWorldModel:
                            torch.cat([means.bias, logvars.bias], -1), None, False)  # fmt: skip
             y = both(h, owed=owed)
             mean, raw = y[..., :width], y[..., width:]
-        top, bottom = head["max"], head["min"]  # [S, N, 1, F]
-        logvar = top - F.softplus(top - raw)
-        return mean, bottom + F.softplus(logvar - bottom)
+        # [S, N, 1, F] bounds
+        return mean, GaussianEnsembleMLP.bounded_logvar(raw, head["max"], head["min"])
 
     @staticmethod
     def bound_penalty(head: dict) -> Tensor:
