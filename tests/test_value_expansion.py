@@ -116,6 +116,19 @@ def td3_loss(K=4):
     return loss
 
 
+def record_critic_shapes(est) -> list:
+    """The shape of every critic call ``est`` makes from now on, in order."""
+    shapes, original = [], est.networks.critic
+
+    def spy(o, a, p, keys):
+        out = original(o, a, p, keys)
+        shapes.append(tuple(out.shape))
+        return out
+
+    est.networks.critic = spy
+    return shapes
+
+
 def perturb(params, scale=0.1):
     """Target networks equal to the online ones hide bugs that mix them up."""
     with torch.no_grad():
@@ -432,15 +445,7 @@ class TestLossIntegration:
     def test_td3_uses_its_critic_ensemble(self):
         loss = td3_loss(K=3)
         est = RAVEValueEstimator.for_loss(loss, world_model=world_model(2), gamma=0.99, horizon=1)
-        shapes = []
-        original = est.networks.critic
-
-        def spy(o, a, p, keys):
-            out = original(o, a, p, keys)
-            shapes.append(tuple(out.shape))
-            return out
-
-        est.networks.critic = spy
+        shapes = record_critic_shapes(est)
         loss.make_value_estimator(est)
         data = batch(B=5)
         out = loss(data)
@@ -582,15 +587,7 @@ class TestSoftTargetInSACLoss:
         loss = REDQLoss(stochastic_actor(), critic_net(), num_qvalue_nets=5)
         loss.log_alpha.data.fill_(0.5)
         est = STEVEEstimator.for_loss(loss, world_model=world_model(2), gamma=0.9, horizon=1)
-        shapes = []
-        original = est.networks.critic
-
-        def spy(o, a, p, keys):
-            out = original(o, a, p, keys)
-            shapes.append(tuple(out.shape))
-            return out
-
-        est.networks.critic = spy
+        shapes = record_critic_shapes(est)
         loss.make_value_estimator(est)
         out = loss(batch(B=4))
         assert shapes == [(5, 4 * (1 + 2 * 1))]
