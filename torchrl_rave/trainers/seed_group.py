@@ -247,17 +247,17 @@ def _mlp_layers(
     return layers, leaves, list(in_keys), tanh
 
 
-def _sac_actor_plan(loss) -> TensorCall:
-    """The MLP inside the SAC actor as tensor calls
-    (:meth:`~torchrl_rave.modules.TensorCall.plan_gaussian_actor`), keyed as in the loss's
-    ``actor_network_params``; the extractor and the tanh-Gaussian are applied by the group."""
+def _sac_actor_plan(loss) -> tuple:
+    """The SAC actor planned (:meth:`~torchrl_rave.modules.TensorCall.plan_gaussian_actor`):
+    its MLP as tensor calls keyed as in the loss's ``actor_network_params``, its extractor
+    and its distribution module, which the group applies itself."""
     planned = TensorCall.plan_gaussian_actor(loss.actor_network)
     if planned is None:
         raise ValueError(
             "a seed group's SAC actor is a ProbabilisticActor over "
             "TensorDictModule(Sequential(<MLP>, NormalParamExtractor)), as the recipe builds it"
         )
-    return planned[0]
+    return planned
 
 
 class _GroupedNormalizer:
@@ -643,8 +643,7 @@ class SeedGroup:
                 raise ValueError("a SAC seed group needs lr_alpha")
             self.log_alpha = _fuse([x.log_alpha for x in losses], 0, True, self._members)
             self.alpha_optimizer = torch.optim.Adam([self.log_alpha], lr=lr_alpha, fused=True)
-            head = losses[0].actor_network.module
-            self._extractor, self._dist = head[0].module[1], head[1]
+            _, self._extractor, self._dist = _sac_actor_plan(losses[0])
 
     # ----------------------------------------------------------------- set-up
     def _estimator_setup(self, losses) -> None:
@@ -681,7 +680,7 @@ class SeedGroup:
                 "TanhModule for the actor); this learner's networks cannot be planned"
             )
         if self.sac:
-            actor_plan = _sac_actor_plan(losses[0])
+            actor_plan = _sac_actor_plan(losses[0])[0]
         self.actor, actor_leaves, self.actor_in_keys, tanh = _mlp_layers(
             actor_plan, [loss.actor_network_params for loss in losses], 0, self._members
         )
