@@ -145,6 +145,9 @@ class TestTargets:
         ref_mean, ref_var = naive_moments(ref, Ni, Nj, K, B, Hmax)
         torch.testing.assert_close(mean, ref_mean)
         torch.testing.assert_close(var, ref_var)
+        for got, want in zip(VF.horizon_moments(T.clone(), two_pass=True), (ref_mean, ref_var),
+                             strict=True):  # fmt: skip
+            torch.testing.assert_close(got, want)
         target, weights = VF.expansion_target(
             mean, var, mix="inverse_variance", alpha=alpha, eps=eps
         )

@@ -11,6 +11,7 @@ from torchrl.data import Bounded, Composite, Unbounded
 import torchrl_rave.modules.world_model as world_model_module
 from torchrl_rave.recipe.agent import make_agent, make_seed_group
 from torchrl_rave.recipe.update import agent_update
+from torchrl_rave.modules import ensemble
 from torchrl_rave.trainers import seed_group
 
 OBS, ACT, B = 5, 2, 16
@@ -143,7 +144,7 @@ def test_each_seed_is_its_single_update(algorithm, S, large, monkeypatch):
     ``large``, every layer takes the path of outputs larger than the caches (bmm, then the
     bias added in place)."""
     if large:
-        monkeypatch.setattr(seed_group, "_LARGE", 0)
+        monkeypatch.setattr(ensemble, "_LARGE", 0)
     cfg, _ = learner(algorithm, 0)
     singles = [learner(algorithm, s)[1] for s in range(S)]
     grouped = [learner(algorithm, s)[1] for s in range(S)]
@@ -321,7 +322,7 @@ def test_a_large_layers_owed_bias_is_the_bias_it_left_out(output_major, monkeypa
     """Without autograd, a large ReLU layer returns ``max(x w, -b)`` and owes ``b``; the
     next layer takes the owed bias into its own. Against a loop over the matrices of
     ``relu(x w + b)``, layer after layer, for K members of S seeds."""
-    monkeypatch.setattr(seed_group, "_LARGE", 0)
+    monkeypatch.setattr(ensemble, "_LARGE", 0)
     g = torch.Generator().manual_seed(0)
     S, K, R, widths = 2, 3, 7, [5, 6, 6, 2]
     layers, naive = [], []
@@ -331,7 +332,7 @@ def test_a_large_layers_owed_bias_is_the_bias_it_left_out(output_major, monkeypa
         act = torch.nn.ReLU() if j < len(widths) - 2 else None
         if not output_major:  # EnsembleLinear's layout: [..., in, out], bias [..., 1, out]
             w, b = w.mT.contiguous(), b.unsqueeze(-2)
-        layers.append(seed_group._Linear(w, b, act, output_major))
+        layers.append(ensemble._Linear(w, b, act, output_major))
         naive.append((w if output_major else w.mT, b.reshape(S, K, o), act))
     x = torch.randn(S, R, widths[0], generator=g)
     want = torch.empty(S, K, R, widths[-1])
@@ -343,14 +344,14 @@ def test_a_large_layers_owed_bias_is_the_bias_it_left_out(output_major, monkeypa
                 h = h if act is None else h.clamp_min(0)
             want[s, k] = h
     with torch.no_grad():
-        y, owed = seed_group._run(layers[:2], x, settle=False)
+        y, owed = ensemble._run(layers[:2], x, settle=False)
         assert owed is not None and owed.shape == (S * K, 1, widths[2])
-        torch.testing.assert_close(y + owed.view(S, K, 1, -1), seed_group._run(layers[:2], x))
-        torch.testing.assert_close(seed_group._run(layers, x), want)
+        torch.testing.assert_close(y + owed.view(S, K, 1, -1), ensemble._run(layers[:2], x))
+        torch.testing.assert_close(ensemble._run(layers, x), want)
     # with autograd the layers add their bias as they go: nothing is owed
     x.requires_grad_(True)
-    assert seed_group._run(layers[:2], x, settle=False)[1] is None
-    torch.testing.assert_close(seed_group._run(layers, x), want)
+    assert ensemble._run(layers[:2], x, settle=False)[1] is None
+    torch.testing.assert_close(ensemble._run(layers, x), want)
 
 
 def test_without_autograd_a_groups_gaussian_heads_are_one_layer(monkeypatch):
@@ -361,18 +362,18 @@ def test_without_autograd_a_groups_gaussian_heads_are_one_layer(monkeypatch):
     wm = group.world_model
     x = torch.randn(2, 3, 9, OBS + ACT)  # [S, N, rows, features]
     calls = []
-    original = seed_group._Linear.apply
+    original = ensemble._Linear.apply
 
     def counting(layer, *args, **kwargs):
         calls.append(layer.weight.shape[-1])
         return original(layer, *args, **kwargs)
 
-    monkeypatch.setattr(seed_group._Linear, "apply", counting)
+    monkeypatch.setattr(ensemble._Linear, "apply", counting)
     with torch.no_grad():
-        fused = wm._gaussian_forward(wm.transition, x)
+        fused = wm.transition(x, per_member=True)
     monkeypatch.undo()
     assert calls[-1] == 2 * OBS  # one layer for both heads, of twice the width
-    separate = wm._gaussian_forward(wm.transition, x)  # with autograd: the two heads
+    separate = wm.transition(x, per_member=True)  # with autograd: the two heads
     for a, b in zip(fused, separate, strict=True):
         torch.testing.assert_close(a, b.detach())
 

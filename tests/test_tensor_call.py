@@ -115,6 +115,44 @@ class TestEquivalence:
         assert all(p.grad is not None and p.grad.abs().sum() > 0 for p in net.parameters())
 
 
+class TestStackedSeeds:
+    """``seeds=True``: a seed group's stacked parameters, one dict leaf ``[S, ...]`` per
+    dotted key, against each seed's own parameters through the module."""
+
+    @staticmethod
+    def stack(params_per_seed):
+        return {".".join(k): torch.stack([p.get(k) for p in params_per_seed])
+                for k in params_per_seed[0].keys(True, True)}  # fmt: skip
+
+    def test_stacked_critics_of_every_seed(self):
+        net = critic()
+        seeds = [random_params(net, 3) for _ in range(2)]  # S = 2 seeds of K = 3 critics
+        x = {k: torch.stack([v, v.flip(0)]) for k, v in inputs().items()}  # [S, M, F]
+        out = TensorCall.plan(net, stacked=True)(self.stack(seeds), x, seeds=True)
+        for s, params in enumerate(seeds):
+            one = {k: v[s] for k, v in x.items()}
+            for k in range(3):
+                want = reference(net, params[k], one)["state_action_value"]
+                torch.testing.assert_close(out["state_action_value"][s, k], want)
+
+    def test_tanh_actor_of_every_seed_with_the_modules_box(self):
+        actor = tanh_actor()
+        seeds = [random_params(actor) for _ in range(3)]
+        for p in seeds:  # the box is the module's (a group's seeds share it)
+            p["module", "1"].update(TensorDict.from_module(actor)["module", "1"])
+        x = {"observation": torch.randn(3, M, S)}
+        out = TensorCall.plan(actor)(self.stack(seeds), x, seeds=True)["action"]
+        for s, params in enumerate(seeds):
+            want = reference(actor, params, {"observation": x["observation"][s]})["action"]
+            torch.testing.assert_close(out[s], want)
+
+    def test_a_module_step_is_refused(self):
+        actor = Actor(nn.Sequential(nn.Linear(S, A), nn.LayerNorm(A)))
+        call = TensorCall.plan(actor)
+        with pytest.raises(ValueError, match="stacked seeds' parameters run MLP and tanh steps"):
+            call({}, {"observation": torch.randn(2, M, S)}, seeds=True)
+
+
 class TestRefusals:
     def test_layer_norm_runs_through_the_module(self):
         net = critic(norm_class=nn.LayerNorm, norm_kwargs={"normalized_shape": 16})

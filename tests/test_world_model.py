@@ -558,3 +558,74 @@ def test_world_model_loss_takes_any_batch_shape(shape):
         outs.append(WorldModelEnsembleLoss(model)(data))
     for key in ("loss_transition", "loss_reward", "loss_termination"):
         torch.testing.assert_close(outs[1][key], outs[0][key])
+
+
+class TestStackedSeeds:
+    """A seed group's world models as one module with the seed leading every parameter:
+    each seed's outputs against its own model's, seed by seed."""
+
+    S, N, D, A = 3, 4, 5, 2
+
+    def models(self):
+        from torchrl_rave.trainers.seed_group import _stacked
+
+        models = []
+        for s in range(self.S):
+            torch.manual_seed(s)
+            wm = WorldModelEnsemble(self.D, self.A, num_models=self.N, transition_cells=16,
+                                    reward_cells=16, termination_cells=16)  # fmt: skip
+            g = torch.Generator().manual_seed(10 + s)
+            wm.update_normalizers(torch.randn(32, self.D, generator=g) * (1 + s),
+                                  torch.rand(32, self.A, generator=g),
+                                  torch.randn(32, self.D, generator=g) + s,
+                                  torch.randn(32, generator=g) * (2 + s))  # fmt: skip
+            models.append(wm)
+        return models, _stacked(models, [])
+
+    def seeds(self, fn):
+        return torch.stack([fn(s) for s in range(self.S)])
+
+    @pytest.mark.parametrize("grad", [True, False])
+    def test_every_call_is_each_seeds_own(self, grad):
+        models, stacked = self.models()
+        assert stacked.seeds == self.S and models[0].seeds is None
+        g = torch.Generator().manual_seed(0)
+        S, N, D, A = self.S, self.N, self.D, self.A
+        obs, act = torch.randn(S, 2, 6, D, generator=g), torch.rand(S, 2, 6, A, generator=g)
+        obs_m, act_m = torch.randn(S, N, 6, D, generator=g), torch.rand(S, N, 6, A, generator=g)
+        close = torch.testing.assert_close
+        with torch.set_grad_enabled(grad):
+            close(stacked.step(obs, act, sample=False),
+                  self.seeds(lambda s: models[s].step(obs[s], act[s], sample=False)))
+            close(stacked.step(obs_m, act_m, sample=False, per_member=True),
+                  self.seeds(lambda s: models[s].step(obs_m[s], act_m[s], sample=False,
+                                                      per_member=True)))
+            close(stacked.reward(obs, act, obs + 1, sample=False),
+                  self.seeds(lambda s: models[s].reward(obs[s], act[s], obs[s] + 1, sample=False)))
+            close(stacked.termination_prob(obs_m, per_member=True),
+                  self.seeds(lambda s: models[s].termination_prob(obs_m[s], per_member=True)))
+            close(stacked.mean_prediction_error(obs[:, 0], act[:, 0], obs[:, 1]),
+                  self.seeds(lambda s: models[s].mean_prediction_error(
+                      obs[s, 0], act[s, 0], obs[s, 1])))  # fmt: skip
+            loss = WorldModelEnsembleLoss(models[0], reward_coeff=0.5)
+            r, d = torch.randn(S, N, 6, 1, generator=g), (torch.rand(S, N, 6, 1) < 0.3).float()
+            out = loss.loss_terms(stacked, obs_m, act_m, obs_m + 1, r, d)
+            for s in range(S):
+                one = loss.loss_terms(models[s], obs_m[s], act_m[s], obs_m[s] + 1, r[s], d[s])
+                for key, value in one.items():
+                    close(out[key][s], value, msg=key)
+
+    def test_its_draw_and_its_refusals(self):
+        models, stacked = self.models()
+        obs, act = torch.randn(self.S, 4, self.D), torch.rand(self.S, 4, self.A)
+        stacked.draw = lambda mean, logvar, sample: torch.zeros_like(mean)  # the delta's mean
+        torch.testing.assert_close(
+            stacked.step(obs, act, sample=True),
+            self.seeds(lambda s: (obs[s] + models[s].delta_norm.mean).expand(self.N, 4, self.D)),
+        )
+        with pytest.raises(ValueError, match=r"stacked seeds' observation must have shape \[3, \*B, 5\]"):
+            stacked.step(obs[:2], act[:2], sample=False)
+        with pytest.raises(ValueError, match=r"per-member input to stacked seeds' ensemble must have shape \[3, 4, M, 7\]"):
+            stacked.transition(torch.randn(3, 2, 4, 7), per_member=True)
+        with pytest.raises(RuntimeError, match="each learner's own normaliser"):
+            stacked.obs_norm.update(obs)

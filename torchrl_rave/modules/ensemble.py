@@ -9,6 +9,13 @@ no Python loop over members. Inputs come in two layouts:
   ``[N, M, F']``.
 
 Callers flatten any batch dimensions into ``M`` first.
+
+Stacked seeds. A :class:`~torchrl_rave.trainers.SeedGroup` stacks the parameters of
+``S`` ensembles along a new leading dimension (weights ``[S, N, in, out]``); the same
+modules then evaluate every seed at once, with inputs ``[S, M, F]`` (shared by a seed's
+members) or ``[S, N, M, F]`` (per member) and outputs ``[S, N, M, F']``. Each layer is one
+batched matmul over the ``S x N`` maps (:class:`_Linear`), so seed ``s``'s rows only meet
+seed ``s``'s weights.
 """
 
 from __future__ import annotations
@@ -21,6 +28,8 @@ from torch import nn
 from torch.nn import functional as F
 
 from torchrl_rave._checks import check_positive_int
+
+Tensor = torch.Tensor
 
 
 def inplace_activation(activation: nn.Module):
@@ -63,6 +72,113 @@ def ensemble_affine(
     return torch.bmm(x, weight) if bias is None else torch.baddbmm(bias, x, weight)
 
 
+# outputs of more floats than this (2 MiB) are computed as bmm + add_ (see _Linear)
+_LARGE = 1 << 19
+
+
+class _Linear:
+    """One grouped affine layer and the activation after it (``None``: none).
+
+    The weight is ``[S, *E, out, in]`` (``output_major``, ``nn.Linear``'s layout) or
+    ``[S, *E, in, out]`` (:class:`~torchrl_rave.modules.EnsembleLinear`'s), with ``E`` the
+    ensemble dimensions (none for the actor, ``K`` critics, ``N`` world-model members).
+    Inputs are ``[S, R, in]``, shared by a seed's members, or ``[S, *E, R, in]``, one block
+    per member; the output is ``[S, *E, R, out]``. Each layer is one ``baddbmm`` over the
+    ``S x E`` matrices; a layer of one matrix (a group of one's actor, or DDPG's one
+    critic) is the ``F.linear`` call its single learner makes, so that a group of one
+    rounds as its single run does.
+
+    Outputs larger than the caches (over 2 MiB) cost a pass over memory for each
+    element-wise step, so the layer avoids them where it can. Without autograd, a ReLU
+    layer's output is returned with its bias still *owed*: ``max(x w, -b)``, which is
+    ``relu(x w + b) - b``, with ``b`` handed on (:meth:`apply`) and folded into the next
+    layer's bias as ``b + owed w``. That is one pass (the clamp) where ``bias add`` and
+    ``relu`` take two. At S = 8 it spares five of the value target's passes over
+    13.6 MB tensors (``benchmarks/README.md``, the seed-group section). The product is the
+    same up to rounding. At the default sizes a group of one's outputs stay under 2 MiB,
+    so it still rounds as its single run does (with a larger batch or network, this path
+    and the in-place bias add below round otherwise than its learner's ``baddbmm``)."""
+
+    __slots__ = ("weight", "bias", "activation", "output_major")
+
+    def __init__(self, weight, bias, activation, output_major: bool) -> None:
+        self.weight, self.bias, self.activation = weight, bias, activation
+        self.output_major = output_major
+
+    def __call__(self, x: Tensor, detach: bool = False, owed: Tensor | None = None) -> Tensor:
+        return _settle(*self.apply(x, detach, owed))
+
+    def apply(
+        self, x: Tensor, detach: bool = False, owed: Tensor | None = None
+    ) -> tuple[Tensor, Tensor | None]:
+        """The layer on ``x + owed`` (``owed``: a bias ``[S * E, 1, in]`` that ``x`` does
+        not hold yet, or ``None``); returns ``(y, owed)`` in the same sense."""
+        w, b = self.weight, self.bias
+        if detach:
+            w, b = w.detach(), None if b is None else b.detach()
+        if self.output_major:
+            w = w.mT  # a transposed view: BLAS reads it as it is
+        elif w.shape[-1] < w.shape[-2]:  # as EnsembleLinear._matmul_weight
+            w = w.mT.clone(memory_format=torch.contiguous_format).mT
+        lead, (fan_in, fan_out) = w.shape[:-2], w.shape[-2:]
+        rows = x.shape[-2]
+        flat = len(lead) == 1 and x.dim() == 3  # one matrix per seed: x, w, y are [S, ., .]
+        if not flat:
+            if x.dim() == 3 and len(lead) > 1:  # shared by the members: one copy per member
+                x = x.unsqueeze(1).expand(*lead, rows, fan_in)
+            x = x.reshape(-1, rows, fan_in)
+            w = w.reshape(-1, fan_in, fan_out)
+        if b is not None:
+            b = b.reshape(-1, 1, fan_out)
+        if owed is not None:  # (x + owed) w + b = x w + (owed w + b)
+            b = ensemble_affine(owed, w, b)
+        large = x.shape[0] * rows * fan_out > _LARGE
+        if (
+            large
+            and b is not None
+            and type(self.activation) is torch.nn.ReLU
+            and not (torch.is_grad_enabled() and (x.requires_grad or w.requires_grad))
+        ):
+            y = torch.bmm(x, w).clamp_(min=b.neg())  # relu(x w + b) - b
+            return y.view(*lead, rows, fan_out), b
+        if x.shape[0] == 1 and self.output_major:
+            # one matrix (a group of one's actor, or its one critic): the 2-D call its
+            # learner makes (nn.Linear's, as TensorCall makes for one member); BLAS need
+            # not round a batch of one as it rounds that call, and on some CPUs does not
+            y = F.linear(x[0], w[0].mT, None if b is None else b.reshape(fan_out))
+        elif large and b is not None:
+            # an output larger than the caches: baddbmm first writes the bias over all of
+            # it and BLAS then reads it back; the product, then the bias added in place,
+            # spares one pass (a RAVE target layer at S = 8: 6.6 -> 5.5 ms at 1 thread)
+            y = torch.bmm(x, w).add_(b)
+        else:
+            y = ensemble_affine(x, w, b)  # the S x E maps of [S * E, rows, in] in one kernel
+        if self.activation is not None:
+            # on the product itself, before the view: an in-place op on a view makes
+            # autograd rebase it (CopySlices), whose backward clones and zero-fills the
+            # whole output (128 of the ATen calls of a RAVE group update)
+            inplace = inplace_activation(self.activation)
+            y = self.activation(y) if inplace is None else inplace(y)
+        return (y if y.dim() == len(lead) + 2 else y.view(*lead, rows, fan_out)), None
+
+
+def _settle(y: Tensor, owed: Tensor | None) -> Tensor:
+    """``y`` with the bias it owes (see :class:`_Linear`) added."""
+    if owed is None:
+        return y
+    return y.add_(owed.view(*y.shape[:-2], 1, y.shape[-1]))
+
+
+def _run(
+    layers: list[_Linear], x: Tensor, detach: bool = False, settle: bool = True
+) -> Tensor | tuple[Tensor, Tensor | None]:
+    """The layers in turn; with ``settle=False``, ``(y, owed)`` as :meth:`_Linear.apply`."""
+    owed = None
+    for layer in layers:
+        x, owed = layer.apply(x, detach, owed)
+    return _settle(x, owed) if settle else (x, owed)
+
+
 def _check_layout(x: torch.Tensor, num_members: int, in_features: int, per_member: bool) -> None:
     if x.shape[-1] != in_features:
         raise ValueError(
@@ -76,6 +192,19 @@ def _check_layout(x: torch.Tensor, num_members: int, in_features: int, per_membe
         )
     if not per_member and x.dim() != 2:
         raise ValueError(f"shared input must have shape [M, {in_features}], got {tuple(x.shape)}")
+
+
+def _check_seeded_layout(x: Tensor, leaf: Tensor, in_features: int, per_member: bool) -> None:
+    """Stacked seeds' inputs: ``[S, M, in]`` shared by a seed's members, or
+    ``[S, N, M, in]`` per member, with ``S, N`` the leading sizes of ``leaf``."""
+    S, N = leaf.shape[:2]
+    want = (S, N) if per_member else (S,)
+    if x.dim() != len(want) + 2 or tuple(x.shape[: len(want)]) != want or x.shape[-1] != in_features:
+        layout = f"[{S}, {N}, M, {in_features}]" if per_member else f"[{S}, M, {in_features}]"
+        kind = "per-member" if per_member else "shared"
+        raise ValueError(
+            f"{kind} input to stacked seeds' ensemble must have shape {layout}, got {tuple(x.shape)}"
+        )
 
 
 class EnsembleLinear(nn.Module):
@@ -134,6 +263,9 @@ class EnsembleLinear(nn.Module):
         return w
 
     def forward(self, x: torch.Tensor, per_member: bool = False) -> torch.Tensor:
+        if self.weight.dim() == 4:  # stacked seeds
+            _check_seeded_layout(x, self.weight, self.in_features, per_member)
+            return _Linear(self.weight, self.bias, None, output_major=False)(x)
         if x.shape[-1] != self.in_features or (
             per_member and (x.dim() != 3 or x.shape[0] != self.num_members)
         ):
@@ -193,7 +325,21 @@ class EnsembleMLP(nn.Module):
         inplace = inplace_activation(self.activation)
         return self.activation(x) if inplace is None else inplace(x)
 
+    def grouped_layers(self, last_activation: bool = False) -> list:
+        """The layers of stacked seeds' parameters (``[S, N, in, out]``) as the grouped
+        executor's, the activation after every hidden layer (and, with
+        ``last_activation``, after the last one)."""
+        depth = len(self.layers)
+        return [
+            _Linear(layer.weight, layer.bias,
+                    self.activation if n < depth - 1 or last_activation else None, False)
+            for n, layer in enumerate(self.layers)
+        ]  # fmt: skip
+
     def forward(self, x: torch.Tensor, per_member: bool = False) -> torch.Tensor:
+        if self.layers[0].weight.dim() == 4:  # stacked seeds
+            _check_seeded_layout(x, self.layers[0].weight, self.in_features, per_member)
+            return _run(self.grouped_layers(), x)
         _check_layout(x, self.num_members, self.in_features, per_member)
         for n, layer in enumerate(self.layers):
             # after the first layer every member has its own rows
@@ -267,9 +413,32 @@ class GaussianEnsembleMLP(nn.Module):
     def forward(
         self, x: torch.Tensor, per_member: bool = False
     ) -> tuple[torch.Tensor, torch.Tensor]:
+        if self.max_logvar.dim() == 4:  # stacked seeds
+            _check_seeded_layout(x, self.max_logvar, self.trunk.in_features, per_member)
+            return self._grouped_forward(x)
         h = self.trunk.activate(self.trunk(x, per_member=per_member))
         mean = self.mean_head._affine(h)  # h is the trunk's own output
         raw = self.logvar_head._affine(h)
+        return mean, self.bounded_logvar(raw, self.max_logvar, self.min_logvar)
+
+    def _grouped_forward(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """:meth:`forward` over stacked seeds. The trunk's last layer may hand its bias on
+        to the heads (see :class:`_Linear`). Without autograd, in a group of more than one,
+        both heads run as one layer of twice the width: BLAS runs an 11-wide product far
+        below its speed, and the 22-wide one takes about the time of one 11-wide (a
+        rollout step's heads at S = 8: 0.40 -> 0.21 ms). A group of one keeps its single
+        run's calls."""
+        h, owed = _run(self.trunk.grouped_layers(last_activation=True), x, settle=False)
+        means, logvars = self.mean_head, self.logvar_head
+        if torch.is_grad_enabled() or means.weight.shape[0] == 1:
+            mean = _Linear(means.weight, means.bias, None, False)(h, owed=owed)
+            raw = _Linear(logvars.weight, logvars.bias, None, False)(h, owed=owed)
+        else:
+            width = means.weight.shape[-1]
+            both = _Linear(torch.cat([means.weight, logvars.weight], -1),
+                           torch.cat([means.bias, logvars.bias], -1), None, False)  # fmt: skip
+            y = both(h, owed=owed)
+            mean, raw = y[..., :width], y[..., width:]
         return mean, self.bounded_logvar(raw, self.max_logvar, self.min_logvar)
 
     @staticmethod
@@ -288,5 +457,8 @@ class GaussianEnsembleMLP(nn.Module):
         return min_logvar + F.softplus(logvar - min_logvar)
 
     def bound_penalty(self) -> torch.Tensor:
-        """``sum(max_logvar) - sum(min_logvar)``: pulls the learned bounds together."""
+        """``sum(max_logvar) - sum(min_logvar)``: pulls the learned bounds together
+        (``[S]``, one per seed, over stacked seeds)."""
+        if self.max_logvar.dim() == 4:
+            return self.max_logvar.sum((1, 2, 3)) - self.min_logvar.sum((1, 2, 3))
         return self.max_logvar.sum() - self.min_logvar.sum()

@@ -41,6 +41,10 @@ class RunningNormalizer(nn.Module):
         """Merges the rows of ``x`` (shape ``[*B, size]``) into the statistics; raises
         ``ValueError``, leaving them unchanged, when they would not fit the buffers' dtype
         (float32 variances end near 3.4e38, so at inputs near 1.8e19)."""
+        if self.mean.dim() != 1:
+            raise RuntimeError(
+                "stacked seeds' statistics are updated through each learner's own normaliser"
+            )
         if x.shape[-1] != self.size:
             raise ValueError(
                 f"normaliser of size {self.size} got a tensor of shape {tuple(x.shape)}"
@@ -82,11 +86,22 @@ class RunningNormalizer(nn.Module):
         """The standard deviation of variances ``var`` (any shape), at least ``min_std``."""
         return var.sqrt().clamp_min(min_std)
 
+    def _stats(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """The mean and std as they broadcast against ``x``: as they are, or, stacked
+        seeds' ``[S, size]`` statistics, viewed ``[S, 1, ..., size]`` against
+        ``[S, ..., size]``."""
+        if self.mean.dim() == 1:
+            return self.mean, self.std
+        shape = (x.shape[0],) + (1,) * (x.dim() - 2) + (x.shape[-1],)
+        return self.mean.view(shape), self.std.view(shape)
+
     def normalize(self, x: torch.Tensor) -> torch.Tensor:
-        return (x - self.mean) / self.std
+        mean, std = self._stats(x)
+        return (x - mean) / std
 
     def denormalize(self, x: torch.Tensor) -> torch.Tensor:
-        return x * self.std + self.mean
+        mean, std = self._stats(x)
+        return x * std + mean
 
     def extra_repr(self) -> str:
         return f"size={self.size}, count={int(self.count)}"

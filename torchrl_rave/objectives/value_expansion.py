@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import functools
 import warnings
+from collections.abc import Callable
 from dataclasses import field, make_dataclass
 from typing import Literal
 
@@ -82,6 +83,23 @@ Attributes:
     horizon_weights (NestedKey): normalised ``w_H`` per sample. Defaults to
         ``"<prefix>_horizon_weights"``.
 """
+
+
+def world_model_calls(world_model: WorldModelEnsemble, sample: bool) -> dict[str, Callable]:
+    """The world model's calls of :func:`~torchrl_rave.objectives.functional.value_expansion_target`
+    (``step``, ``imagined_reward``, ``termination_prob``), for one model or a seed
+    group's stacked one (every tensor then leads with the seed)."""
+
+    def step(s, a, per_member):
+        return world_model.step(s, a, sample=sample, per_member=per_member)
+
+    def imagined_reward(s, a, s2):  # [Nj, Ni, M, H]: shared inputs, every reward member
+        return world_model.reward(s, a, s2, sample=sample).squeeze(-1)
+
+    def termination_prob(s2):  # [Ni, M, H]: each member's own
+        return world_model.termination_prob(s2, per_member=True).squeeze(-1)
+
+    return {"step": step, "imagined_reward": imagined_reward, "termination_prob": termination_prob}
 
 
 class ValueExpansionEstimator(ValueEstimatorBase):
@@ -448,27 +466,17 @@ class ValueExpansionEstimator(ValueEstimatorBase):
         actor_params, value_params = nets.params(target_params)
         self._check_num_critics(nets.num_critics(value_params))
 
-        def step(s, a, per_member):
-            return wm.step(s, a, sample=sample, per_member=per_member)
-
         def policy(s):  # a stochastic actor's (action, log_prob)
             if nets.stochastic:
                 return nets.sample(s, actor_params, keys)
             return nets.policy(s, actor_params, keys)
 
-        def imagined_reward(s, a, s2):  # [Nj, Ni, M, H]: shared inputs, every reward member
-            return wm.reward(s, a, s2, sample=sample).squeeze(-1)
-
-        def termination_prob(s2):  # [Ni, M, H]: each member's own
-            return wm.termination_prob(s2, per_member=True).squeeze(-1)
-
         def critic(s, a):  # [K, R]
             return nets.critic(s, a, value_params, keys)
 
         target, var, weights = VF.value_expansion_target(
-            next_obs, reward, terminated, policy=policy, step=step,
-            imagined_reward=imagined_reward, termination_prob=termination_prob, critic=critic,
-            num_members=N, horizon=H, gamma=self.gamma, mix=self.mix, alpha=alpha,
+            next_obs, reward, terminated, policy=policy, critic=critic,
+            **world_model_calls(wm, sample), num_members=N, horizon=H, gamma=self.gamma, mix=self.mix, alpha=alpha,
             eps=self.variance_eps, temperature=nets.temperature() if nets.stochastic else None,
         )  # fmt: skip
 

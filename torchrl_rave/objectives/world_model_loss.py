@@ -210,6 +210,33 @@ class WorldModelEnsembleLoss(LossModule):
             return torch.arange(batch_size, device=device).expand(N, batch_size)
         return torch.randint(batch_size, (N, batch_size), device=device)
 
+    def loss_terms(
+        self,
+        world_model: WorldModelEnsemble,
+        obs: torch.Tensor,
+        action: torch.Tensor,
+        next_obs: torch.Tensor,
+        reward: torch.Tensor,
+        terminated: torch.Tensor,
+    ) -> dict[str, torch.Tensor]:
+        """:func:`world_model_loss_terms` of ``world_model``'s predictions, with this
+        loss's coefficients, on each member's own (resampled) transitions ``[N, B, F]``
+        (``reward`` and ``terminated`` ``[N, B, 1]``, floating); with a seed group's
+        stacked world model, ``[S, N, B, F]`` and per-seed outputs ``[S]``."""
+        wm = world_model
+        return world_model_loss_terms(
+            wm.predict_transition(obs, action, per_member=True),
+            wm.target_delta(obs, next_obs),
+            wm.predict_reward(obs, action, next_obs, per_member=True),
+            wm.reward_norm.normalize(reward),
+            wm.termination_logits(next_obs, per_member=True),
+            terminated,
+            (wm.transition.bound_penalty(), wm.reward_model.bound_penalty()),
+            reward_coeff=self.reward_coeff,
+            termination_coeff=self.termination_coeff,
+            logvar_bound_coeff=self.logvar_bound_coeff,
+        )
+
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
         wm = self.world_model
         wm.check_normalizers()
@@ -237,18 +264,7 @@ class WorldModelEnsembleLoss(LossModule):
         obs, action, next_obs = obs[idx], action[idx], next_obs[idx]  # [N, B, F]
         reward, terminated = reward[idx], terminated[idx]
 
-        out = world_model_loss_terms(
-            wm.predict_transition(obs, action, per_member=True),
-            wm.target_delta(obs, next_obs),
-            wm.predict_reward(obs, action, next_obs, per_member=True),
-            wm.reward_norm.normalize(reward),
-            wm.termination_logits(next_obs, per_member=True),
-            terminated,
-            (wm.transition.bound_penalty(), wm.reward_model.bound_penalty()),
-            reward_coeff=self.reward_coeff,
-            termination_coeff=self.termination_coeff,
-            logvar_bound_coeff=self.logvar_bound_coeff,
-        )
+        out = self.loss_terms(wm, obs, action, next_obs, reward, terminated)
         if check:
             check_finite_losses(
                 type(self).__name__,

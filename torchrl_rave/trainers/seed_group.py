@@ -50,27 +50,21 @@ updates on this workload (``benchmarks/README.md``, the seed-group section).
 from __future__ import annotations
 
 import contextlib
+import copy
+import functools
 from collections.abc import Callable, Sequence
 
 import torch
 from tensordict import TensorDict, TensorDictBase
 from torch.distributions.utils import _sum_rightmost
-from torch.nn import functional as F
 from torchrl.objectives import SACLoss, TD3Loss
+from torchrl.objectives.value.functional import td0_return_estimate
 
-from torchrl_rave.modules.ensemble import (
-    EnsembleLinear,
-    EnsembleMLP,
-    GaussianEnsembleMLP,
-    ensemble_affine,
-    inplace_activation,
-)
-from torchrl_rave.modules.normalizer import RunningNormalizer
 from torchrl_rave.modules.tensor_call import TensorCall, _leaf
 from torchrl_rave.objectives import functional as VF
 from torchrl_rave.objectives.ensemble_ddpg import EnsembleDDPGLoss
-from torchrl_rave.objectives.value_expansion import ValueExpansionEstimator
-from torchrl_rave.objectives.world_model_loss import WorldModelEnsembleLoss, world_model_loss_terms
+from torchrl_rave.objectives.value_expansion import ValueExpansionEstimator, world_model_calls
+from torchrl_rave.objectives.world_model_loss import WorldModelEnsembleLoss
 
 __all__ = ["SeedGroup"]
 
@@ -107,144 +101,20 @@ def _same(name: str, values: Sequence) -> object:
     return first
 
 
-# outputs of more floats than this (2 MiB) are computed as bmm + add_ (see _Linear)
-_LARGE = 1 << 19
-
-
-class _Linear:
-    """One grouped affine layer and the activation after it (``None``: none).
-
-    The weight is ``[S, *E, out, in]`` (``output_major``, ``nn.Linear``'s layout) or
-    ``[S, *E, in, out]`` (:class:`~torchrl_rave.modules.EnsembleLinear`'s), with ``E`` the
-    ensemble dimensions (none for the actor, ``K`` critics, ``N`` world-model members).
-    Inputs are ``[S, R, in]``, shared by a seed's members, or ``[S, *E, R, in]``, one block
-    per member; the output is ``[S, *E, R, out]``. Each layer is one ``baddbmm`` over the
-    ``S x E`` matrices; a layer of one matrix (a group of one's actor, or DDPG's one
-    critic) is the ``F.linear`` call its single learner makes, so that a group of one
-    rounds as its single run does.
-
-    Outputs larger than the caches (over 2 MiB) cost a pass over memory for each
-    element-wise step, so the layer avoids them where it can. Without autograd, a ReLU
-    layer's output is returned with its bias still *owed*: ``max(x w, -b)``, which is
-    ``relu(x w + b) - b``, with ``b`` handed on (:meth:`apply`) and folded into the next
-    layer's bias as ``b + owed w``. That is one pass (the clamp) where ``bias add`` and
-    ``relu`` take two. At S = 8 it spares five of the value target's passes over
-    13.6 MB tensors (``benchmarks/README.md``, the seed-group section). The product is the
-    same up to rounding. At the default sizes a group of one's outputs stay under 2 MiB,
-    so it still rounds as its single run does (with a larger batch or network, this path
-    and the in-place bias add below round otherwise than its learner's ``baddbmm``)."""
-
-    __slots__ = ("weight", "bias", "activation", "output_major")
-
-    def __init__(self, weight, bias, activation, output_major: bool) -> None:
-        self.weight, self.bias, self.activation = weight, bias, activation
-        self.output_major = output_major
-
-    def __call__(self, x: Tensor, detach: bool = False, owed: Tensor | None = None) -> Tensor:
-        return _settle(*self.apply(x, detach, owed))
-
-    def apply(
-        self, x: Tensor, detach: bool = False, owed: Tensor | None = None
-    ) -> tuple[Tensor, Tensor | None]:
-        """The layer on ``x + owed`` (``owed``: a bias ``[S * E, 1, in]`` that ``x`` does
-        not hold yet, or ``None``); returns ``(y, owed)`` in the same sense."""
-        w, b = self.weight, self.bias
-        if detach:
-            w, b = w.detach(), None if b is None else b.detach()
-        if self.output_major:
-            w = w.mT  # a transposed view: BLAS reads it as it is
-        elif w.shape[-1] < w.shape[-2]:  # as EnsembleLinear._matmul_weight
-            w = w.mT.clone(memory_format=torch.contiguous_format).mT
-        lead, (fan_in, fan_out) = w.shape[:-2], w.shape[-2:]
-        rows = x.shape[-2]
-        flat = len(lead) == 1 and x.dim() == 3  # one matrix per seed: x, w, y are [S, ., .]
-        if not flat:
-            if x.dim() == 3 and len(lead) > 1:  # shared by the members: one copy per member
-                x = x.unsqueeze(1).expand(*lead, rows, fan_in)
-            x = x.reshape(-1, rows, fan_in)
-            w = w.reshape(-1, fan_in, fan_out)
-        if b is not None:
-            b = b.reshape(-1, 1, fan_out)
-        if owed is not None:  # (x + owed) w + b = x w + (owed w + b)
-            b = ensemble_affine(owed, w, b)
-        large = x.shape[0] * rows * fan_out > _LARGE
-        if (
-            large
-            and b is not None
-            and type(self.activation) is torch.nn.ReLU
-            and not (torch.is_grad_enabled() and (x.requires_grad or w.requires_grad))
-        ):
-            y = torch.bmm(x, w).clamp_(min=b.neg())  # relu(x w + b) - b
-            return y.view(*lead, rows, fan_out), b
-        if x.shape[0] == 1 and self.output_major:
-            # one matrix (a group of one's actor, or its one critic): the 2-D call its
-            # learner makes (nn.Linear's, as TensorCall makes for one member); BLAS need
-            # not round a batch of one as it rounds that call, and on some CPUs does not
-            y = F.linear(x[0], w[0].mT, None if b is None else b.reshape(fan_out))
-        elif large and b is not None:
-            # an output larger than the caches: baddbmm first writes the bias over all of
-            # it and BLAS then reads it back; the product, then the bias added in place,
-            # spares one pass (a RAVE target layer at S = 8: 6.6 -> 5.5 ms at 1 thread)
-            y = torch.bmm(x, w).add_(b)
-        else:
-            y = ensemble_affine(x, w, b)  # the S x E maps of [S * E, rows, in] in one kernel
-        if self.activation is not None:
-            # on the product itself, before the view: an in-place op on a view makes
-            # autograd rebase it (CopySlices), whose backward clones and zero-fills the
-            # whole output (128 of the ATen calls of a RAVE group update)
-            inplace = inplace_activation(self.activation)
-            y = self.activation(y) if inplace is None else inplace(y)
-        return (y if y.dim() == len(lead) + 2 else y.view(*lead, rows, fan_out)), None
-
-
-def _settle(y: Tensor, owed: Tensor | None) -> Tensor:
-    """``y`` with the bias it owes (see :class:`_Linear`) added."""
-    if owed is None:
-        return y
-    return y.add_(owed.view(*y.shape[:-2], 1, y.shape[-1]))
-
-
-def _run(
-    layers: list[_Linear], x: Tensor, detach: bool = False, settle: bool = True
-) -> Tensor | tuple[Tensor, Tensor | None]:
-    """The layers in turn; with ``settle=False``, ``(y, owed)`` as :meth:`_Linear.apply`."""
-    owed = None
-    for layer in layers:
-        x, owed = layer.apply(x, detach, owed)
-    return _settle(x, owed) if settle else (x, owed)
-
-
-def _mlp_layers(
-    plan: TensorCall, params: Sequence[TensorDictBase], dim: int, members: _Members
-) -> tuple:
-    """The grouped linear layers of a planned TorchRL MLP (one ``"mlp"`` step, optionally
-    followed by a ``"tanh"`` step) from each learner's ``params``; returns ``(layers,
-    leaves, in_keys, tanh)`` with ``leaves`` the fused tensors in order."""
+def _stacked_params(plan: TensorCall, params: Sequence[TensorDictBase], members: _Members) -> dict:
+    """The leaves of a planned TorchRL MLP (one ``"mlp"`` step, optionally followed by a
+    ``"tanh"`` step), each learner's ``params`` fused along the seed, by dotted key: what
+    :class:`~torchrl_rave.modules.TensorCall` runs with ``seeds=True``."""
     kinds = [step[0] for step in plan.steps]
     if kinds not in (["mlp"], ["mlp", "tanh"]):
         raise ValueError(f"a seed group runs plain MLP networks, got the planned steps {kinds}")
-    _, in_keys, _, entries = plan.steps[0]
-    layers, leaves = [], []
-    for is_linear, layer, *keys in entries:
-        if not is_linear:
-            if not layers or layers[-1].activation is not None:
-                raise ValueError("a seed group needs one activation after each linear layer")
-            layers[-1].activation = layer
-            continue
-        fused = []
-        for key in keys:
-            fused.append(
-                None if key is None
-                else _fuse([_leaf(p, *key) for p in params], dim, isinstance(
-                    _leaf(params[0], *key), torch.nn.Parameter), members)
-            )  # fmt: skip
-        layers.append(_Linear(fused[0], fused[1], None, output_major=True))
-        leaves += [t for t in fused if t is not None]
-    tanh = None
-    if len(plan.steps) == 2:
-        _, _, _, (module, _, low, high), rescale, clamp = plan.steps[1]
-        tanh = (getattr(module, low), getattr(module, high), rescale, clamp)
-    return layers, leaves, list(in_keys), tanh
+    out = {}
+    for is_linear, _, *keys in plan.steps[0][3]:
+        for key in keys if is_linear else ():
+            if key is not None:
+                leaves = [_leaf(p, *key) for p in params]
+                out[key[1]] = _fuse(leaves, 0, isinstance(leaves[0], torch.nn.Parameter), members)
+    return out
 
 
 def _sac_actor_plan(loss) -> tuple:
@@ -260,128 +130,22 @@ def _sac_actor_plan(loss) -> tuple:
     return planned
 
 
-class _GroupedNormalizer:
-    """A :class:`~torchrl_rave.modules.normalizer.RunningNormalizer` per seed, read from
-    fused ``[S, F]`` statistics (updates go through each learner's own normaliser, whose
-    buffers are views of these)."""
-
-    def __init__(self, normalizers) -> None:
-        self.min_std = _same("normaliser min_std", [n.min_std for n in normalizers])
-        self.mean = _fuse([n.mean for n in normalizers], 0, False)
-        self.var = _fuse([n.var for n in normalizers], 0, False)
-        self.count = _fuse([n.count for n in normalizers], 0, False)
-
-    def _stats(self, x: Tensor):
-        # [S, 1, ..., F]: broadcasts against [S, *members, rows, F]
-        shape = (x.shape[0],) + (1,) * (x.dim() - 2) + (x.shape[-1],)
-        return self.mean.view(shape), RunningNormalizer.floored_std(self.var, self.min_std).view(
-            shape
-        )
-
-    def normalize(self, x: Tensor) -> Tensor:
-        mean, std = self._stats(x)
-        return (x - mean) / std
-
-    def denormalize(self, x: Tensor) -> Tensor:
-        mean, std = self._stats(x)
-        return x * std + mean
-
-
-class _GroupedWorldModel:
-    """The world models of all seeds as one ``[S, N]`` ensemble; the methods mirror
-    :class:`~torchrl_rave.modules.WorldModelEnsemble`'s with inputs ``[S, R, F]`` (shared
-    by the members) or ``[S, N, R, F]`` (per member) and outputs ``[S, N, R, F']``."""
-
-    def __init__(
-        self, models, draw: Callable[[Tensor, Tensor, bool], Tensor], members: _Members
-    ) -> None:
-        self.members = members
-        self.num_models = _same("world_model.num_models", [m.num_models for m in models])
-        self.draw = draw
-        self.leaves: list[Tensor] = []
-        self.transition = self._gaussian([m.transition for m in models])
-        self.reward_model = self._gaussian([m.reward_model for m in models])
-        self.termination = self._mlp([m.termination for m in models])
-        self.obs_norm = _GroupedNormalizer([m.obs_norm for m in models])
-        self.action_norm = _GroupedNormalizer([m.action_norm for m in models])
-        self.delta_norm = _GroupedNormalizer([m.delta_norm for m in models])
-        self.reward_norm = _GroupedNormalizer([m.reward_norm for m in models])
-
-    def _linear(self, layers: Sequence[EnsembleLinear], activation) -> _Linear:
-        w = _fuse([layer.weight for layer in layers], 0, True, self.members)
-        b = _fuse([layer.bias for layer in layers], 0, True, self.members)
-        self.leaves += [w, b]
-        return _Linear(w, b, activation, output_major=False)
-
-    def _mlp(self, mlps: Sequence[EnsembleMLP], last_activation: bool = False) -> list[_Linear]:
-        depth = _same("world-model layer counts", [len(m.layers) for m in mlps])
-        activation = mlps[0].activation
-        return [
-            self._linear([m.layers[i] for m in mlps],
-                         activation if i < depth - 1 or last_activation else None)
-            for i in range(depth)
-        ]  # fmt: skip
-
-    def _gaussian(self, heads) -> dict:
-        out = {
-            "trunk": self._mlp([h.trunk for h in heads], last_activation=True),
-            "mean": self._linear([h.mean_head for h in heads], None),
-            "logvar": self._linear([h.logvar_head for h in heads], None),
-            "max": _fuse([h.max_logvar for h in heads], 0, True, self.members),
-            "min": _fuse([h.min_logvar for h in heads], 0, True, self.members),
-        }
-        self.leaves += [out["max"], out["min"]]
-        return out
-
-    @staticmethod
-    def _gaussian_forward(head: dict, x: Tensor) -> tuple[Tensor, Tensor]:
-        h, owed = _run(head["trunk"], x, settle=False)
-        means, logvars = head["mean"], head["logvar"]
-        if torch.is_grad_enabled() or means.weight.shape[0] == 1:
-            mean, raw = means(h, owed=owed), logvars(h, owed=owed)
-        else:
-            # without autograd, in a group of more than one: both heads as one layer of
-            # twice the width. BLAS runs an 11-wide product far below its speed; the
-            # 22-wide one takes about the time of one 11-wide (a rollout step's heads at
-            # S = 8: 0.40 -> 0.21 ms). A group of one keeps its single run's calls.
-            width = means.weight.shape[-1]
-            both = _Linear(torch.cat([means.weight, logvars.weight], -1),
-                           torch.cat([means.bias, logvars.bias], -1), None, False)  # fmt: skip
-            y = both(h, owed=owed)
-            mean, raw = y[..., :width], y[..., width:]
-        # [S, N, 1, F] bounds
-        return mean, GaussianEnsembleMLP.bounded_logvar(raw, head["max"], head["min"])
-
-    @staticmethod
-    def bound_penalty(head: dict) -> Tensor:
-        """Each seed's ``sum(max_logvar) - sum(min_logvar)``, ``[S]``."""
-        return head["max"].sum((1, 2, 3)) - head["min"].sum((1, 2, 3))
-
-    def _sa(self, obs: Tensor, action: Tensor) -> Tensor:
-        return torch.cat([self.obs_norm.normalize(obs), self.action_norm.normalize(action)], -1)
-
-    def predict_transition(self, obs, action):
-        return self._gaussian_forward(self.transition, self._sa(obs, action))
-
-    def step(self, obs, action, sample: bool) -> Tensor:
-        delta = self.draw(*self.predict_transition(obs, action), sample)
-        base = obs if obs.dim() == 4 else obs.unsqueeze(1)  # [S, R, D] is every member's
-        return base + self.delta_norm.denormalize(delta)
-
-    def predict_reward(self, obs, action, next_obs):
-        x = torch.cat([self._sa(obs, action), self.obs_norm.normalize(next_obs)], -1)
-        return self._gaussian_forward(self.reward_model, x)
-
-    def reward(self, obs, action, next_obs, sample: bool) -> Tensor:
-        return self.reward_norm.denormalize(
-            self.draw(*self.predict_reward(obs, action, next_obs), sample)
-        )
-
-    def termination_logits(self, next_obs: Tensor) -> Tensor:
-        return _run(self.termination, self.obs_norm.normalize(next_obs))
-
-    def target_delta(self, obs, next_obs):
-        return self.delta_norm.normalize(next_obs - obs)
+def _stacked(modules: Sequence[torch.nn.Module], members: _Members) -> torch.nn.Module:
+    """A copy of ``modules[0]`` whose every parameter and buffer is the modules' leaves
+    fused along a new leading seed dimension (:func:`_fuse`: each module's own leaves
+    become views of their slice). The ensemble modules evaluate such stacked parameters
+    for all seeds at once (``modules.ensemble``, stacked seeds)."""
+    _same("world-model shapes", [[tuple(t.shape) for t in m.state_dict().values()] for m in modules])
+    stacked = copy.deepcopy(modules[0])
+    for name, _ in list(stacked.named_parameters()):
+        owner, _, leaf = name.rpartition(".")
+        fused = _fuse([m.get_parameter(name) for m in modules], 0, True, members)
+        setattr(stacked.get_submodule(owner), leaf, fused)
+    for name, _ in list(stacked.named_buffers()):
+        owner, _, leaf = name.rpartition(".")
+        fused = _fuse([m.get_buffer(name) for m in modules], 0, False)
+        stacked.get_submodule(owner)._buffers[leaf] = fused
+    return stacked
 
 
 class SeedStreams:
@@ -454,18 +218,6 @@ class SeedStreams:
             out.append(draw(i))
             self.capture(i)
         return torch.stack(out, dim)
-
-
-def _horizon_moments(candidates: Tensor) -> tuple[Tensor, Tensor]:
-    """:func:`~torchrl_rave.objectives.functional.horizon_moments` in two passes: the mean
-    over the ``Ni x Nj x K`` candidates, then the mean of the squared deviations. The same
-    moments to float rounding, 8-9x faster here than ``var_mean``'s one-pass reduction
-    over the leading dimensions (``[4, 4, 4, S, 128, 4]`` at 2 threads: 1.15 -> 0.14 ms at
-    S = 4, 2.16 -> 0.24 ms at S = 8)."""
-    flat = candidates.flatten(0, 2)
-    mean = flat.mean(0)
-    deviation = flat - mean
-    return mean, deviation.mul_(deviation).mean(0)
 
 
 def _randn_like(x: Tensor, streams: SeedStreams | None) -> Tensor:
@@ -622,17 +374,17 @@ class SeedGroup:
                 if wm_loss.world_model is not loss.value_estimator.world_model:
                     raise ValueError("each world-model loss must train its learner's own model")
             self.wm_losses = list(world_model_losses)
-            self.world_model = _GroupedWorldModel(
-                [w.world_model for w in world_model_losses],
-                draw or _gaussian_draw(streams),
-                self._members,
-            )
+            models = [w.world_model for w in world_model_losses]
+            _same("normaliser min_std", [[n.min_std for n in (m.obs_norm, m.action_norm,
+                  m.delta_norm, m.reward_norm)] for m in models])  # fmt: skip
+            self.world_model = _stacked(models, self._members)
+            self.world_model.draw = draw or _gaussian_draw(streams)
             for name in ("bootstrap", "logvar_bound_coeff", "reward_coeff", "termination_coeff"):
                 _same(f"world-model loss {name}", [getattr(w, name) for w in world_model_losses])
             if lr_world_model is None:
                 raise ValueError("a value-expansion group needs lr_world_model")
             self.wm_optimizer = torch.optim.Adam(
-                self.world_model.leaves, lr=lr_world_model, fused=True
+                self.world_model.parameters(), lr=lr_world_model, fused=True
             )
         # the weight ForeachSoftUpdate lerps with: 1 - eps, eps = 1 - tau (the same float)
         self.tau = 1.0 - (1.0 - float(tau))
@@ -681,51 +433,45 @@ class SeedGroup:
             )
         if self.sac:
             actor_plan = _sac_actor_plan(losses[0])[0]
-        self.actor, actor_leaves, self.actor_in_keys, tanh = _mlp_layers(
-            actor_plan, [loss.actor_network_params for loss in losses], 0, self._members
-        )
-        self.target_actor = []  # SAC's next actions come from the current actor
-        if not self.sac:
-            self.target_actor, _, _, _ = _mlp_layers(
-                actor_plan, [x.target_actor_network_params for x in losses], 0, self._members
-            )
-            if tanh is None:
-                raise ValueError("a seed group's actor ends in a TanhModule onto the action box")
-        self.tanh = tanh
-        self.critic, critic_leaves, self.critic_in_keys, _ = _mlp_layers(
-            critic_plan, [getattr(x, f"{self._critic}_params") for x in losses], 0, self._members
-        )
-        self.target_critic, _, _, _ = _mlp_layers(
-            critic_plan,
-            [getattr(x, f"target_{self._critic}_params") for x in losses],
-            0,
-            self._members,
-        )
-        self.actor_leaves, self.critic_leaves = actor_leaves, critic_leaves
+        elif actor_plan.steps[-1][0] != "tanh":
+            raise ValueError("a seed group's actor ends in a TanhModule onto the action box")
+        if list(actor_plan.steps[0][1]) != ["observation"]:
+            raise ValueError(f"a seed group's actor reads 'observation', not {actor_plan.steps[0][1]}")
+        if sorted(map(str, critic_plan.steps[0][1])) != sorted(["observation", str(self.keys.action)]):
+            raise ValueError(f"a seed group's critics read {critic_plan.steps[0][1]}")
+        self.actor_call, self.critic_call = actor_plan, critic_plan
+
+        def fused(plan, name):
+            return _stacked_params(plan, [getattr(x, name) for x in losses], self._members)
+
+        self.actor = fused(actor_plan, "actor_network_params")
+        # SAC's next actions come from the current actor
+        self.target_actor = {} if self.sac else fused(actor_plan, "target_actor_network_params")
+        self.critic = fused(critic_plan, f"{self._critic}_params")
+        self.target_critic = fused(critic_plan, f"target_{self._critic}_params")
+        self.actor_leaves, self.critic_leaves = list(self.actor.values()), list(self.critic.values())
         self._lerp = (
-            [t for layer in self.target_actor + self.target_critic
-             for t in (layer.weight, layer.bias) if t is not None],
-            [t.detach() for t in ([] if self.sac else actor_leaves) + critic_leaves],
-        )  # fmt: skip
+            [*self.target_actor.values(), *self.target_critic.values()],
+            [t.detach() for t in ([] if self.sac else self.actor_leaves) + self.critic_leaves],
+        )
 
     # ---------------------------------------------------------------- networks
-    def _policy(self, layers, obs: Tensor) -> Tensor:
+    def _policy(self, params: dict, obs: Tensor) -> Tensor:
         """Actions ``[S, ..., A]`` for observations ``[S, ..., F]``."""
-        low, high, rescale, clamp = self.tanh
-        x = _run(layers, obs.reshape(obs.shape[0], -1, obs.shape[-1]))
-        x = x.view(*obs.shape[:-1], x.shape[-1]).tanh()
-        if clamp:
-            eps = torch.finfo(x.dtype).resolution
-            x = x.clamp(-1 + eps, 1 - eps)
-        return low + (high - low) * (x + 1) / 2 if rescale else x
+        x = obs.reshape(obs.shape[0], -1, obs.shape[-1])
+        action = self.actor_call(params, {"observation": x}, seeds=True)[self._out(self.actor_call)]
+        return action.view(*obs.shape[:-1], action.shape[-1])
 
-    def _q(self, layers, obs: Tensor, action: Tensor, detach: bool = False) -> Tensor:
+    def _q(self, params: dict, obs: Tensor, action: Tensor, detach: bool = False) -> Tensor:
         """``[S, K, R]`` values of the K critics for ``[S, R, F]`` inputs."""
         inputs = {self.keys.action: action, "observation": obs}
-        xs = [inputs.get(k) for k in self.critic_in_keys]
-        if any(x is None for x in xs):
-            raise ValueError(f"a seed group's critics read {self.critic_in_keys}")
-        return _run(layers, torch.cat(xs, -1), detach).squeeze(-1)
+        value = self.critic_call(params, inputs, detach=detach, seeds=True)
+        return value[self._out(self.critic_call)].squeeze(-1)
+
+    @staticmethod
+    def _out(plan: TensorCall):
+        """The output a planned network's last step writes."""
+        return plan.steps[-1][2]
 
     # ----------------------------------------------------------------- targets
     def batch_keys(self, available) -> list:
@@ -746,8 +492,6 @@ class SeedGroup:
             raise ValueError(
                 f"a seed group of {S} takes batches of shape [{S}, B], got {tuple(batch.batch_size)}"
             )
-        if list(self.actor_in_keys) != ["observation"]:
-            raise ValueError(f"a seed group's actor reads 'observation', not {self.actor_in_keys}")
         obs = batch.get("observation")
         nxt = batch.get(("next", "observation"))
         action = batch.get(k.action)
@@ -770,8 +514,7 @@ class SeedGroup:
                 )
                 next_action = (next_action + noise).clamp(self.min_action, self.max_action)
             next_q = self._q(self.target_critic, nxt, next_action)
-            not_terminated = (~terminated).int()
-            return reward + self.gamma * not_terminated * next_q.min(1)[0], {}
+            return td0_return_estimate(self.gamma, next_q.min(1)[0], reward, terminated), {}
         return self._expansion_target(obs, action, nxt, reward, terminated)
 
     def _expansion_target(self, obs, action, nxt, reward, terminated, temperature=None):
@@ -782,9 +525,8 @@ class SeedGroup:
         N, (S, M, D) = wm.num_models, nxt.shape
         sample = self.rollout == "sample"
         if self.alpha_mode == "adaptive":
-            mean, _ = wm.predict_transition(obs, action)  # [S, N, M, D]
-            err = (mean.mean(1) - wm.target_delta(obs, nxt)).pow(2).sum(-1)
-            alpha = VF.adaptive_alpha(err, self.alpha, self.alpha_error_scale)  # [S, M]
+            err = wm.mean_prediction_error(obs, action, nxt)  # [S, M]
+            alpha = VF.adaptive_alpha(err, self.alpha, self.alpha_error_scale)
         else:
             alpha = self.alpha
 
@@ -794,25 +536,14 @@ class SeedGroup:
             a, log_prob = self._sac_action(s.reshape(S, -1, D))
             return a.view(*s.shape[:-1], a.shape[-1]), log_prob.view(s.shape[:-1])
 
-        def step(s, a, per_member):  # [S, M, D] shared by the members, or [S, N, M, D]
-            return wm.step(s, a, sample)
-
-        def imagined_reward(s, a, s2):  # [S, Nj, Ni, M, H], one [S, Ni*M*H] batch per seed
-            A = a.shape[-1]
-            r = wm.reward(s.reshape(S, -1, D), a.reshape(S, -1, A), s2.reshape(S, -1, D), sample)
-            return r.view(S, N, N, M, H)
-
-        def termination_prob(s2):  # [S, Ni, M, H]
-            return torch.sigmoid(wm.termination_logits(s2.reshape(S, N, M * H, D))).view(S, N, M, H)
-
         def critic(s, a):  # [S, K, R]
             return self._q(self.target_critic, s, a)
 
         target, var, weights = VF.value_expansion_target(
-            nxt, reward, terminated, policy=policy, step=step, imagined_reward=imagined_reward,
-            termination_prob=termination_prob, critic=critic, num_members=N, horizon=H,
+            nxt, reward, terminated, policy=policy, critic=critic,
+            **world_model_calls(wm, sample), num_members=N, horizon=H,
             gamma=self.gamma, mix=self.mix, alpha=alpha, eps=self.variance_eps,
-            moments=_horizon_moments, temperature=temperature,
+            moments=functools.partial(VF.horizon_moments, two_pass=True), temperature=temperature,
         )  # fmt: skip
         keys = self.diagnostic_keys
         diagnostics = {
@@ -828,7 +559,9 @@ class SeedGroup:
         ``[S, B]``, drawn as the recipe's SAC actor draws them: its own extractor and
         distribution module, the pre-tanh value ``loc + eps * scale`` scored as
         ``TanhNormal.rsample_and_log_prob`` scores it (``eps``: ``policy_noise_draw``)."""
-        loc, scale = self._extractor(_run(self.actor, obs))
+        loc, scale = self._extractor(
+            self.actor_call(self.actor, {"observation": obs}, seeds=True)["loc_scale"]
+        )
         dist = self._dist.get_dist(TensorDict(loc=loc, scale=scale, batch_size=loc.shape[:-1]))
         base = dist.root_dist
         preimage = base.loc + self._noise(base.loc) * base.scale
@@ -858,7 +591,7 @@ class SeedGroup:
                 next_action, next_log_prob = self._sac_action(nxt)
                 next_q = self._q(self.target_critic, nxt, next_action)  # [S, K, B]
                 next_value = (next_q - alpha.view(-1, 1, 1) * next_log_prob.unsqueeze(1)).min(1)[0]
-                target = reward + self.gamma * (~terminated).int() * next_value
+                target = td0_return_estimate(self.gamma, next_value, reward, terminated)
         current = self._q(self.critic, obs, action)
         loss_value = (current - target.unsqueeze(1)).pow(2).sum(1).mean(-1)
         new_action, log_prob = self._sac_action(obs)
@@ -958,18 +691,7 @@ class SeedGroup:
         obs, action, nxt = resample(obs), resample(action), resample(nxt)
         reward = resample(reward.unsqueeze(-1))
         terminated = resample(terminated.unsqueeze(-1)).to(obs.dtype)
-        out = world_model_loss_terms(
-            wm.predict_transition(obs, action),
-            wm.target_delta(obs, nxt),
-            wm.predict_reward(obs, action, nxt),
-            wm.reward_norm.normalize(reward),
-            wm.termination_logits(nxt),
-            terminated,
-            (wm.bound_penalty(wm.transition), wm.bound_penalty(wm.reward_model)),
-            reward_coeff=loss0.reward_coeff,
-            termination_coeff=loss0.termination_coeff,
-            logvar_bound_coeff=loss0.logvar_bound_coeff,
-        )
+        out = loss0.loss_terms(wm, obs, action, nxt, reward, terminated)
         self.wm_optimizer.zero_grad()
         (out["loss_transition"] + out["loss_reward"] + out["loss_termination"]).sum().backward()
         self.wm_optimizer.step()
