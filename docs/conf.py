@@ -33,11 +33,24 @@ extensions = [
     "sphinx.ext.napoleon",
     "sphinx.ext.mathjax",
     "sphinx.ext.viewcode",
+    "sphinx.ext.intersphinx",
     "myst_parser",
 ]
 
+# TorchRL's and tensordict's names link to their documentation, through the inventories
+# kept in docs/_inventories/ (its README says where each came from): the build reads them
+# from disk and never goes to the network.
+intersphinx_mapping = {
+    "torchrl": ("https://docs.pytorch.org/rl/stable/", str(DOCS / "_inventories" / "torchrl.inv")),
+    "tensordict": (
+        "https://docs.pytorch.org/tensordict/0.14/",
+        str(DOCS / "_inventories" / "tensordict.inv"),
+    ),
+}
+intersphinx_timeout = 1
+
 source_suffix = {".rst": "restructuredtext", ".md": "markdown"}
-exclude_patterns = ["_build", "figures/*.md", "README.md"]
+exclude_patterns = ["_build", "figures/*.md", "README.md", "_inventories"]
 root_doc = "index"
 
 # MyST: $...$ and $$...$$ math, heading anchors for cross-page links
@@ -118,9 +131,11 @@ def setup(app):
     app.connect("autodoc-process-docstring", _list_tensordict_keys)
     return _load_local_extension("recipe_reference").setup(app)
 
-# Nitpicky: every cross-reference to a name of ours must resolve. Names of other packages stay
-# unlinked: their inventories would be fetched over the network at build time, which the
-# build does not assume; they are listed here, so that a warning is a gap of our own.
+# Nitpicky: every cross-reference to a name of ours must resolve. TorchRL's and tensordict's
+# names resolve through intersphinx where their inventories hold them; the names of other
+# packages (torch, whose inventory is not kept, gymnasium, omegaconf, ...) and the few
+# TorchRL / tensordict names their inventories lack stay unlinked. They are listed here, so
+# that a warning is a gap of our own.
 nitpicky = True
 napoleon_preprocess_types = True
 napoleon_type_aliases = {
@@ -129,6 +144,7 @@ napoleon_type_aliases = {
     "TensorDictModuleBase": "tensordict.nn.TensorDictModuleBase",
     "TensorDictModule": "tensordict.nn.TensorDictModule",
     "NestedKey": "tensordict.NestedKey",
+    "LossModule": "torchrl.objectives.LossModule",
     "WorldModelEnsemble": "torchrl_rave.modules.WorldModelEnsemble",
     "WorldModelEnsembleLoss": "torchrl_rave.objectives.WorldModelEnsembleLoss",
 }
