@@ -1,16 +1,19 @@
 """Whole runs: frames per second and peak memory of seed groups against single runs on
 this machine's cores, each layout timed end to end (collection, updates, evaluation).
 
-    python benchmarks/seed_group_runs.py                     # Hopper-v5 RAVE, 4 seeds, about 6 min
+    python benchmarks/seed_group_runs.py                     # Hopper-v5 RAVE, 4 seeds, about 12 min
     python benchmarks/seed_group_runs.py --frames 6000 --algorithm ddpg
 
 The same four seeds of ``python recipes/rave_mujoco.py`` (``collector.total_frames=--frames``,
-the recipe's defaults otherwise) run in three layouts, one after the other:
+the recipe's defaults otherwise) run in five layouts, one after the other:
 
 - *singles, two at a time*: four single runs, two processes side by side at one thread
   each, the way ``study.py run --jobs 2`` runs cells;
 - *one group of four*: ``seeds=[0,1,2,3]`` in one process at two threads;
-- *two groups of two*: ``seeds=[0,1]`` and ``seeds=[2,3]`` side by side at one thread each.
+- *two groups of two*: ``seeds=[0,1]`` and ``seeds=[2,3]`` side by side at one thread each;
+- *singles one after another*: the four single runs in turn, one process at one thread;
+- *one group of four at one thread*: what a group gains on one core alone
+  (``speedup_vs_serial``: the serial singles' time over the layout's).
 
 Reported per layout: the wall-clock seconds until its last process ends, the frames per
 second of all seeds together (4 x frames / seconds), and the peak resident memory of its
@@ -112,15 +115,22 @@ def main(argv: list[str] | None = None) -> dict:
             "two groups of two, 1 thread each": layout(
                 "group2", [[group([0, 1], 1), group([2, 3], 1)]], tmp
             ),
+            # one core's layouts: the seed group's own gain, without a second process
+            "singles one after another, 1 thread": layout(
+                "serial", [[single(0)], [single(1)], [single(2)], [single(3)]], tmp
+            ),
+            "one group of four, 1 thread": layout("group4t1", [[group([0, 1, 2, 3], 1)]], tmp),
         }
     single_rss = rows["singles, two at a time"]["peak_rss_mib"]
     baseline = rows["singles, two at a time"]["seconds"]
+    serial = rows["singles one after another, 1 thread"]["seconds"]
     for name, row in rows.items():
         row["fps"] = 4 * args.frames / row["seconds"]
         row["speedup"] = baseline / row["seconds"]
+        row["speedup_vs_serial"] = serial / row["seconds"]
         row["peak_rss_vs_single"] = row["peak_rss_mib"] / single_rss
         print(f"{name:34s} {row['seconds']:7.1f} s  {row['fps']:6.1f} frames/s  "
-              f"x{row['speedup']:.2f}  peak RSS {row['peak_rss_mib']:.0f} MiB "
+              f"x{row['speedup']:.2f} (x{row['speedup_vs_serial']:.2f} of serial)  peak RSS {row['peak_rss_mib']:.0f} MiB "
               f"({row['peak_rss_vs_single']:.2f}x a single run's)  final eval/return "
               f"{[round(v, 1) for v in row['final_return'].values()]}", flush=True)  # fmt: skip
     result = {

@@ -67,7 +67,7 @@ from torchrl_rave.recipe.config import (
     world_model_sizes,
 )
 from torchrl_rave.recipe.trust import check_plain_data, check_trusted
-from torchrl_rave.trainers import WorldModelTrainer
+from torchrl_rave.trainers import SeedGroup, WorldModelTrainer
 from torchrl_rave.transforms import RewardTermsReader
 
 __all__ = [
@@ -594,8 +594,6 @@ def make_seed_group(cfg: DictConfig, agents: list[Agent], **kwargs):
     :func:`~torchrl_rave.recipe.make_agent` from ``cfg``, one per seed), with ``cfg``'s learning rates and ``tau``
     (``kwargs``: its other keyword arguments). From then on the agents' parameters are
     views of the group's tensors."""
-    from torchrl_rave.trainers import SeedGroup
-
     model_based = agents[0].world_model is not None
     return SeedGroup(
         [a.loss for a in agents],
