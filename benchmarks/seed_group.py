@@ -308,7 +308,7 @@ def sampling_cost(algorithms, seeds, threads, device, seconds: float, frames: in
 def against(path: Path, algorithms, seeds, threads, device, seconds: float) -> dict:
     """This checkout's group against the group of the ``seed_group.py`` at ``path``: the
     median of paired rounds' time ratios (this / that), with its quartiles."""
-    import torchrl_rave.trainers as trainers
+    import torchrl_rave.recipe.agent as agent_module
 
     spec = importlib.util.spec_from_file_location("seed_group_baseline", path)
     baseline = importlib.util.module_from_spec(spec)
@@ -316,11 +316,11 @@ def against(path: Path, algorithms, seeds, threads, device, seconds: float) -> d
     rows = []
     for n_threads, algorithm, S in _settings(algorithms, seeds, threads, device):
         mine, _ = group_case(algorithm, S, device)
-        current, trainers.SeedGroup = trainers.SeedGroup, baseline.SeedGroup
-        try:  # make_seed_group builds trainers.SeedGroup
+        current, agent_module.SeedGroup = agent_module.SeedGroup, baseline.SeedGroup
+        try:  # make_seed_group builds the SeedGroup its module imported
             theirs, built = group_case(algorithm, S, device)
         finally:
-            trainers.SeedGroup = current
+            agent_module.SeedGroup = current
         assert type(built) is baseline.SeedGroup
         for case in (mine, theirs):  # warm-up: optimiser moments, allocator
             for _ in range(3):
