@@ -629,3 +629,5 @@ class TestStackedSeeds:
             stacked.transition(torch.randn(3, 2, 4, 7), per_member=True)
         with pytest.raises(RuntimeError, match="each learner's own normaliser"):
             stacked.obs_norm.update(obs)
+        with pytest.raises(RuntimeError, match="not through forward"):
+            stacked(TensorDict(observation=obs, action=act, batch_size=obs.shape[:-1]))

@@ -470,6 +470,11 @@ class WorldModelEnsemble(TensorDictModuleBase):
         ``tensordict.nn.EnsembleModule``). Sampled under ``interaction_type() == RANDOM``,
         means otherwise.
         """
+        if self.seeds is not None:
+            raise RuntimeError(
+                "stacked seeds' world model runs through its methods (step, reward, "
+                "termination_prob), not through forward"
+            )
         mode = interaction_type() or self.default_interaction_type
         sample = mode == InteractionType.RANDOM
         read = functools.partial(get_checked, tensordict, dtype=self.dtype, floating=True,
