@@ -131,6 +131,7 @@ def setup(app):
     app.connect("autodoc-process-docstring", _list_tensordict_keys)
     return _load_local_extension("recipe_reference").setup(app)
 
+
 # Nitpicky: every cross-reference to a name of ours must resolve. TorchRL's and tensordict's
 # names resolve through intersphinx where their inventories hold them; the names of other
 # packages (torch, whose inventory is not kept, gymnasium, omegaconf, ...) and the few
@@ -149,12 +150,18 @@ napoleon_type_aliases = {
     "WorldModelEnsembleLoss": "torchrl_rave.objectives.WorldModelEnsembleLoss",
 }
 nitpick_ignore_regex = [
-    (r"py:.*", r"(torch|tensordict|torchrl|omegaconf|numpy|gymnasium|pathlib|collections|"
-     r"typing|mujoco|hydra|matplotlib|ray)(\..*)?"),
-    (r"py:.*", r"(nn\.Module|Tensor|TensorDictBase|TensorDictModuleBase|TensorDictModule|"
-     r"NestedKey|DEVICE_TYPING|EnvBase|Bounded|WeightUpdaterBase|WeightSyncScheme|"
-     r"Literal\[.*|tuple\[.*|Callable|Sequence|Mapping|Path|EnvCreator|ExplorationType|"
-     r"ReplayBuffer|argparse\..*|LossModule)"),
+    (
+        r"py:.*",
+        r"(torch|tensordict|torchrl|omegaconf|numpy|gymnasium|pathlib|collections|"
+        r"typing|mujoco|hydra|matplotlib|ray)(\..*)?",
+    ),
+    (
+        r"py:.*",
+        r"(nn\.Module|Tensor|TensorDictBase|TensorDictModuleBase|TensorDictModule|"
+        r"NestedKey|DEVICE_TYPING|EnvBase|Bounded|WeightUpdaterBase|WeightSyncScheme|"
+        r"Literal\[.*|tuple\[.*|Callable|Sequence|Mapping|Path|EnvCreator|ExplorationType|"
+        r"ReplayBuffer|argparse\..*|LossModule)",
+    ),
     # napoleon splits a docstring's generic type on its commas (``Mapping[str, float]``)
     (r"py:class", r"(Sequence|Mapping|type|list|dict)\[.*|.*\]"),
 ]

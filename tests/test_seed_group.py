@@ -9,9 +9,9 @@ from test_recipe import make_cfg
 from torchrl.data import Bounded, Composite, Unbounded
 
 import torchrl_rave.modules.world_model as world_model_module
+from torchrl_rave.modules import ensemble
 from torchrl_rave.recipe.agent import make_agent, make_seed_group
 from torchrl_rave.recipe.update import agent_update
-from torchrl_rave.modules import ensemble
 from torchrl_rave.trainers import seed_group
 
 OBS, ACT, B = 5, 2, 16

@@ -595,15 +595,24 @@ class TestStackedSeeds:
         obs_m, act_m = torch.randn(S, N, 6, D, generator=g), torch.rand(S, N, 6, A, generator=g)
         close = torch.testing.assert_close
         with torch.set_grad_enabled(grad):
-            close(stacked.step(obs, act, sample=False),
-                  self.seeds(lambda s: models[s].step(obs[s], act[s], sample=False)))
-            close(stacked.step(obs_m, act_m, sample=False, per_member=True),
-                  self.seeds(lambda s: models[s].step(obs_m[s], act_m[s], sample=False,
-                                                      per_member=True)))
-            close(stacked.reward(obs, act, obs + 1, sample=False),
-                  self.seeds(lambda s: models[s].reward(obs[s], act[s], obs[s] + 1, sample=False)))
-            close(stacked.termination_prob(obs_m, per_member=True),
-                  self.seeds(lambda s: models[s].termination_prob(obs_m[s], per_member=True)))
+            close(
+                stacked.step(obs, act, sample=False),
+                self.seeds(lambda s: models[s].step(obs[s], act[s], sample=False)),
+            )
+            close(
+                stacked.step(obs_m, act_m, sample=False, per_member=True),
+                self.seeds(
+                    lambda s: models[s].step(obs_m[s], act_m[s], sample=False, per_member=True)
+                ),
+            )
+            close(
+                stacked.reward(obs, act, obs + 1, sample=False),
+                self.seeds(lambda s: models[s].reward(obs[s], act[s], obs[s] + 1, sample=False)),
+            )
+            close(
+                stacked.termination_prob(obs_m, per_member=True),
+                self.seeds(lambda s: models[s].termination_prob(obs_m[s], per_member=True)),
+            )
             close(stacked.mean_prediction_error(obs[:, 0], act[:, 0], obs[:, 1]),
                   self.seeds(lambda s: models[s].mean_prediction_error(
                       obs[s, 0], act[s, 0], obs[s, 1])))  # fmt: skip
@@ -623,9 +632,14 @@ class TestStackedSeeds:
             stacked.step(obs, act, sample=True),
             self.seeds(lambda s: (obs[s] + models[s].delta_norm.mean).expand(self.N, 4, self.D)),
         )
-        with pytest.raises(ValueError, match=r"stacked seeds' observation must have shape \[3, \*B, 5\]"):
+        with pytest.raises(
+            ValueError, match=r"stacked seeds' observation must have shape \[3, \*B, 5\]"
+        ):
             stacked.step(obs[:2], act[:2], sample=False)
-        with pytest.raises(ValueError, match=r"per-member input to stacked seeds' ensemble must have shape \[3, 4, M, 7\]"):
+        with pytest.raises(
+            ValueError,
+            match=r"per-member input to stacked seeds' ensemble must have shape \[3, 4, M, 7\]",
+        ):
             stacked.transition(torch.randn(3, 2, 4, 7), per_member=True)
         with pytest.raises(RuntimeError, match="each learner's own normaliser"):
             stacked.obs_norm.update(obs)

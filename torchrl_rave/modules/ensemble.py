@@ -199,7 +199,11 @@ def _check_seeded_layout(x: Tensor, leaf: Tensor, in_features: int, per_member: 
     ``[S, N, M, in]`` per member, with ``S, N`` the leading sizes of ``leaf``."""
     S, N = leaf.shape[:2]
     want = (S, N) if per_member else (S,)
-    if x.dim() != len(want) + 2 or tuple(x.shape[: len(want)]) != want or x.shape[-1] != in_features:
+    if (
+        x.dim() != len(want) + 2
+        or tuple(x.shape[: len(want)]) != want
+        or x.shape[-1] != in_features
+    ):
         layout = f"[{S}, {N}, M, {in_features}]" if per_member else f"[{S}, M, {in_features}]"
         kind = "per-member" if per_member else "shared"
         raise ValueError(

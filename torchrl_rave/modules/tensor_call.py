@@ -259,7 +259,9 @@ class TensorCall:
         for is_linear, layer, *keys in layers:
             if not is_linear:
                 if not out or out[-1].activation is not None:
-                    raise ValueError("stacked seeds' MLPs need one linear layer before each activation")
+                    raise ValueError(
+                        "stacked seeds' MLPs need one linear layer before each activation"
+                    )
                 out[-1].activation = layer
                 continue
             weight_key, bias_key = keys

@@ -287,7 +287,11 @@ class WorldModelEnsemble(TensorDictModuleBase):
         S = self.seeds
         if S is not None:  # [S, *B, F] -> [S, R, F], or [S, N, *B, F] -> [S, N, R, F]
             lead = (S, self.num_models) if per_member else (S,)
-            if x.dim() < len(lead) + 1 or tuple(x.shape[: len(lead)]) != lead or x.shape[-1] != size:
+            if (
+                x.dim() < len(lead) + 1
+                or tuple(x.shape[: len(lead)]) != lead
+                or x.shape[-1] != size
+            ):
                 raise ValueError(
                     f"stacked seeds' {'per-member ' if per_member else ''}{name} must have shape "
                     f"[{', '.join(map(str, lead))}, *B, {size}], got {tuple(x.shape)}"

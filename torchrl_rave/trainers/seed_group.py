@@ -135,7 +135,9 @@ def _stacked(modules: Sequence[torch.nn.Module], members: _Members) -> torch.nn.
     fused along a new leading seed dimension (:func:`_fuse`: each module's own leaves
     become views of their slice). The ensemble modules evaluate such stacked parameters
     for all seeds at once (``modules.ensemble``, stacked seeds)."""
-    _same("world-model shapes", [[tuple(t.shape) for t in m.state_dict().values()] for m in modules])
+    _same(
+        "world-model shapes", [[tuple(t.shape) for t in m.state_dict().values()] for m in modules]
+    )
     stacked = copy.deepcopy(modules[0])
     for name, _ in list(stacked.named_parameters()):
         owner, _, leaf = name.rpartition(".")
@@ -436,8 +438,12 @@ class SeedGroup:
         elif actor_plan.steps[-1][0] != "tanh":
             raise ValueError("a seed group's actor ends in a TanhModule onto the action box")
         if list(actor_plan.steps[0][1]) != ["observation"]:
-            raise ValueError(f"a seed group's actor reads 'observation', not {actor_plan.steps[0][1]}")
-        if sorted(map(str, critic_plan.steps[0][1])) != sorted(["observation", str(self.keys.action)]):
+            raise ValueError(
+                f"a seed group's actor reads 'observation', not {actor_plan.steps[0][1]}"
+            )
+        if sorted(map(str, critic_plan.steps[0][1])) != sorted(
+            ["observation", str(self.keys.action)]
+        ):
             raise ValueError(f"a seed group's critics read {critic_plan.steps[0][1]}")
         self.actor_call, self.critic_call = actor_plan, critic_plan
 
@@ -449,7 +455,10 @@ class SeedGroup:
         self.target_actor = {} if self.sac else fused(actor_plan, "target_actor_network_params")
         self.critic = fused(critic_plan, f"{self._critic}_params")
         self.target_critic = fused(critic_plan, f"target_{self._critic}_params")
-        self.actor_leaves, self.critic_leaves = list(self.actor.values()), list(self.critic.values())
+        self.actor_leaves, self.critic_leaves = (
+            list(self.actor.values()),
+            list(self.critic.values()),
+        )
         self._lerp = (
             [*self.target_actor.values(), *self.target_critic.values()],
             [t.detach() for t in ([] if self.sac else self.actor_leaves) + self.critic_leaves],
