@@ -633,14 +633,18 @@ class TestStackedSeeds:
             self.seeds(lambda s: (obs[s] + models[s].delta_norm.mean).expand(self.N, 4, self.D)),
         )
         with pytest.raises(
-            ValueError, match=r"stacked seeds' observation must have shape \[3, \*B, 5\]"
+            ValueError, match=r"observation must lead with the number of seeds \[3\]"
         ):
             stacked.step(obs[:2], act[:2], sample=False)
         with pytest.raises(
             ValueError,
-            match=r"per-member input to stacked seeds' ensemble must have shape \[3, 4, M, 7\]",
+            match=r"per-member input must have shape \[3, 4, M, 7\]",
         ):
             stacked.transition(torch.randn(3, 2, 4, 7), per_member=True)
+        with pytest.raises(
+            ValueError, match=r"per-member observation must lead with the ensemble size \[4\]"
+        ):  # one model's layout, for comparison
+            models[0].step(obs[0, :3], act[0, :3], sample=False, per_member=True)
         with pytest.raises(RuntimeError, match="each learner's own normaliser"):
             stacked.obs_norm.update(obs)
         with pytest.raises(RuntimeError, match="not through forward"):

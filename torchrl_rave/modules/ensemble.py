@@ -179,36 +179,21 @@ def _run(
     return _settle(x, owed) if settle else (x, owed)
 
 
-def _check_layout(x: torch.Tensor, num_members: int, in_features: int, per_member: bool) -> None:
+def _check_layout(
+    x: Tensor, num_members: int, in_features: int, per_member: bool, seeds: tuple = ()
+) -> None:
+    """Shared input ``[*S, M, in]`` or per-member input ``[*S, N, M, in]``, with ``S`` the
+    stacked seeds' leading sizes (none for one ensemble)."""
     if x.shape[-1] != in_features:
         raise ValueError(
             f"ensemble layer expects {in_features} input features, got a tensor of shape "
             f"{tuple(x.shape)}"
         )
-    if per_member and (x.dim() != 3 or x.shape[0] != num_members):
-        raise ValueError(
-            f"per-member input must have shape [{num_members}, M, {in_features}], "
-            f"got {tuple(x.shape)}"
-        )
-    if not per_member and x.dim() != 2:
-        raise ValueError(f"shared input must have shape [M, {in_features}], got {tuple(x.shape)}")
-
-
-def _check_seeded_layout(x: Tensor, leaf: Tensor, in_features: int, per_member: bool) -> None:
-    """Stacked seeds' inputs: ``[S, M, in]`` shared by a seed's members, or
-    ``[S, N, M, in]`` per member, with ``S, N`` the leading sizes of ``leaf``."""
-    S, N = leaf.shape[:2]
-    want = (S, N) if per_member else (S,)
-    if (
-        x.dim() != len(want) + 2
-        or tuple(x.shape[: len(want)]) != want
-        or x.shape[-1] != in_features
-    ):
-        layout = f"[{S}, {N}, M, {in_features}]" if per_member else f"[{S}, M, {in_features}]"
+    lead = (*seeds, num_members) if per_member else tuple(seeds)
+    if x.dim() != len(lead) + 2 or tuple(x.shape[: len(lead)]) != lead:
+        shape = ", ".join(map(str, (*lead, "M", in_features)))
         kind = "per-member" if per_member else "shared"
-        raise ValueError(
-            f"{kind} input to stacked seeds' ensemble must have shape {layout}, got {tuple(x.shape)}"
-        )
+        raise ValueError(f"{kind} input must have shape [{shape}], got {tuple(x.shape)}")
 
 
 class EnsembleLinear(nn.Module):
@@ -268,7 +253,8 @@ class EnsembleLinear(nn.Module):
 
     def forward(self, x: torch.Tensor, per_member: bool = False) -> torch.Tensor:
         if self.weight.dim() == 4:  # stacked seeds
-            _check_seeded_layout(x, self.weight, self.in_features, per_member)
+            seeds = self.weight.shape[:1]
+            _check_layout(x, self.num_members, self.in_features, per_member, seeds)
             return _Linear(self.weight, self.bias, None, output_major=False)(x)
         if x.shape[-1] != self.in_features or (
             per_member and (x.dim() != 3 or x.shape[0] != self.num_members)
@@ -342,7 +328,8 @@ class EnsembleMLP(nn.Module):
 
     def forward(self, x: torch.Tensor, per_member: bool = False) -> torch.Tensor:
         if self.layers[0].weight.dim() == 4:  # stacked seeds
-            _check_seeded_layout(x, self.layers[0].weight, self.in_features, per_member)
+            seeds = self.layers[0].weight.shape[:1]
+            _check_layout(x, self.num_members, self.in_features, per_member, seeds)
             return _run(self.grouped_layers(), x)
         _check_layout(x, self.num_members, self.in_features, per_member)
         for n, layer in enumerate(self.layers):
@@ -418,7 +405,8 @@ class GaussianEnsembleMLP(nn.Module):
         self, x: torch.Tensor, per_member: bool = False
     ) -> tuple[torch.Tensor, torch.Tensor]:
         if self.max_logvar.dim() == 4:  # stacked seeds
-            _check_seeded_layout(x, self.max_logvar, self.trunk.in_features, per_member)
+            seeds = self.max_logvar.shape[:1]
+            _check_layout(x, self.trunk.num_members, self.trunk.in_features, per_member, seeds)
             return self._grouped_forward(x)
         h = self.trunk.activate(self.trunk(x, per_member=per_member))
         mean = self.mean_head._affine(h)  # h is the trunk's own output

@@ -284,32 +284,23 @@ class WorldModelEnsemble(TensorDictModuleBase):
         return self.obs_norm.mean.shape[0] if self.obs_norm.mean.dim() == 2 else None
 
     def _flatten(self, x: torch.Tensor, per_member: bool, name: str, size: int):
-        S = self.seeds
-        if S is not None:  # [S, *B, F] -> [S, R, F], or [S, N, *B, F] -> [S, N, R, F]
-            lead = (S, self.num_models) if per_member else (S,)
-            if (
-                x.dim() < len(lead) + 1
-                or tuple(x.shape[: len(lead)]) != lead
-                or x.shape[-1] != size
-            ):
-                raise ValueError(
-                    f"stacked seeds' {'per-member ' if per_member else ''}{name} must have shape "
-                    f"[{', '.join(map(str, lead))}, *B, {size}], got {tuple(x.shape)}"
-                )
-            return x.reshape(*lead, -1, size), x.shape[len(lead) : -1]
+        """``[*S, *B, F]`` -> ``[*S, R, F]`` (shared) or ``[*S, N, *B, F]`` ->
+        ``[*S, N, R, F]`` (per member), with ``S`` the stacked seeds (none for one model);
+        returns it and ``B``."""
         if x.shape[-1] != size:
             raise ValueError(
                 f"world model expects {name} of size {size} in the last dimension, "
                 f"got shape {tuple(x.shape)}"
             )
-        if per_member:
-            if x.dim() < 2 or x.shape[0] != self.num_models:
-                raise ValueError(
-                    f"per-member {name} must lead with the ensemble size {self.num_models}, "
-                    f"got shape {tuple(x.shape)}"
-                )
-            return x.reshape(self.num_models, -1, size), x.shape[1:-1]
-        return x.reshape(-1, size), x.shape[:-1]
+        seeds = () if self.seeds is None else (self.seeds,)
+        lead = (*seeds, self.num_models) if per_member else seeds
+        if x.dim() < len(lead) + 1 or tuple(x.shape[: len(lead)]) != lead:
+            what = ["the number of seeds"] * len(seeds) + ["the ensemble size"] * per_member
+            raise ValueError(
+                f"{'per-member ' if per_member else ''}{name} must lead with "
+                f"{' and '.join(what)} {list(lead)}, got shape {tuple(x.shape)}"
+            )
+        return x.reshape(*lead, -1, size), x.shape[len(lead) : -1]
 
     def _unflatten(self, y: torch.Tensor, batch_shape: torch.Size) -> torch.Tensor:
         return y.reshape(*y.shape[:-2], *batch_shape, y.shape[-1])

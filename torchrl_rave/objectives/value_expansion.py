@@ -476,8 +476,8 @@ class ValueExpansionEstimator(ValueEstimatorBase):
 
         target, var, weights = VF.value_expansion_target(
             next_obs, reward, terminated, policy=policy, critic=critic,
-            **world_model_calls(wm, sample), num_members=N, horizon=H, gamma=self.gamma, mix=self.mix, alpha=alpha,
-            eps=self.variance_eps, temperature=nets.temperature() if nets.stochastic else None,
+            **world_model_calls(wm, sample), num_members=N, horizon=H, gamma=self.gamma,
+            mix=self.mix, alpha=alpha, eps=self.variance_eps, temperature=nets.temperature() if nets.stochastic else None,
         )  # fmt: skip
 
         diagnostics = TensorDict(
