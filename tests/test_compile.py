@@ -26,12 +26,15 @@ SMALL = [
 ]
 
 
-@pytest.mark.parametrize("algorithm", ["ddpg", "rave"])
-def test_compiled_updates_match_eager(algorithm):
+@pytest.mark.parametrize(
+    "algorithm, critic_first", [("ddpg", False), ("rave", False), ("rave", True)]
+)
+def test_compiled_updates_match_eager(algorithm, critic_first):
     data = bench.batches(32, torch.device("cpu"), count=3)
     params = {}
     for compiled in (False, True):
-        overrides = [*SMALL, f"compile.enabled={str(compiled).lower()}"]
+        overrides = [*SMALL, f"compile.enabled={str(compiled).lower()}",
+                     f"optim.critic_first={str(critic_first).lower()}"]  # fmt: skip
         step, _, loss = bench.recipe_update(algorithm, overrides, torch.device("cpu"))
         torch.manual_seed(1)
         # compile_loss has the compiled code draw RAVE's rollout noise from torch's own

@@ -92,6 +92,7 @@ def test_ppo_stops_at_a_signal_and_resumes_where_it_stopped(monkeypatch, tmp_pat
         ("ppo.max_grad_norm=-1", "ppo.max_grad_norm=-1"),
         ("logger.q_points={up: [[0, 0, 0, 0], [0]]}", "logger.q_points=.*no Q\\(s, a\\)"),
         ("compile.enabled=true", "compile.enabled=True.*false with algorithm=ppo"),
+        ("optim.critic_first=true", "optim.critic_first=True.*false with algorithm=ppo"),
     ],
 )
 def test_bad_ppo_settings_are_named_before_training(override, message, tmp_path):

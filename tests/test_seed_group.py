@@ -11,7 +11,7 @@ from torchrl.data import Bounded, Composite, Unbounded
 import torchrl_rave.modules.world_model as world_model_module
 from torchrl_rave.modules import ensemble
 from torchrl_rave.recipe.agent import make_agent, make_seed_group
-from torchrl_rave.recipe.update import agent_update
+from torchrl_rave.recipe.update import make_agent_step
 from torchrl_rave.trainers import seed_group
 
 OBS, ACT, B = 5, 2, 16
@@ -45,8 +45,8 @@ class Spec:
     action_spec = Bounded(-1.0, 1.0, (ACT,))
 
 
-def learner(algorithm: str, seed: int):
-    cfg = make_cfg(f"algorithm={algorithm}", *SMALL)
+def learner(algorithm: str, seed: int, *overrides: str):
+    cfg = make_cfg(f"algorithm={algorithm}", *SMALL, *overrides)
     torch.manual_seed(seed)
     agent = make_agent(cfg, Spec())
     if agent.world_model is not None:
@@ -135,19 +135,23 @@ def close(a, b, what):
 
 
 @pytest.mark.parametrize(
-    "algorithm, S, large",
-    [(a, S, False) for a in ALGORITHMS for S in (1, 2, 3)] + [("rave", 2, True), ("ddpg", 2, True)],
+    "algorithm, S, large, critic_first",
+    [(a, S, False, False) for a in ALGORITHMS for S in (1, 2, 3)]
+    + [("rave", 2, True, False), ("ddpg", 2, True, False)]
+    + [(a, 2, False, True) for a in ("ddpg", "rave", "td3", "sac", "rave_sac")],
 )
-def test_each_seed_is_its_single_update(algorithm, S, large, monkeypatch):
+def test_each_seed_is_its_single_update(algorithm, S, large, critic_first, monkeypatch):
     """Two steps (world model, then agent) of a group of S equal each seed's own steps on
     its own rows: losses, targets, diagnostics, gradients and parameters after Adam. With
     ``large``, every layer takes the path of outputs larger than the caches (bmm, then the
-    bias added in place)."""
+    bias added in place); with ``critic_first``, the critics step before the actor's loss
+    (``optim.critic_first``) in the group and in each single learner."""
     if large:
         monkeypatch.setattr(ensemble, "_LARGE", 0)
-    cfg, _ = learner(algorithm, 0)
-    singles = [learner(algorithm, s)[1] for s in range(S)]
-    grouped = [learner(algorithm, s)[1] for s in range(S)]
+    extra = ["optim.critic_first=true"] if critic_first else []
+    cfg, _ = learner(algorithm, 0, *extra)
+    singles = [learner(algorithm, s, *extra)[1] for s in range(S)]
+    grouped = [learner(algorithm, s, *extra)[1] for s in range(S)]
     rec = Recorder()
     group = make_group(grouped, cfg, draw=rec.draw, bootstrap_indices=rec.bootstrap,
                        policy_noise_draw=rec.policy_noise)  # fmt: skip
@@ -164,23 +168,23 @@ def test_each_seed_is_its_single_update(algorithm, S, large, monkeypatch):
     for s, agent in enumerate(singles):
         replay(monkeypatch, agent, rec, s)
         loss = agent.loss
+        step = make_agent_step(cfg, loss, agent.optimizers, agent.target_updater)
         for i, d in enumerate(data):
             if agent.world_model_trainer is not None:
                 wm = agent.world_model_trainer.update(d[s])
                 for key in ("loss_transition", "loss_reward", "loss_termination",
                             "transition_nll", "reward_mse", "termination_accuracy"):  # fmt: skip
                     close(wm[key], wm_outs[i][key][s], f"seed {s} step {i} {key}")
-            out = agent_update(
-                loss, agent.optimizers, agent.target_updater, d[s].clone(), step_actor[i]
-            )
+            out = step(d[s].clone(), step_actor[i])
             got = outs[i][s]
             sac = algorithm.endswith("sac")
             qvalue = algorithm == "td3" or sac
             names = {"loss_value": "loss_qvalue" if qvalue else "loss_value"}
-            keys = ["loss_value", "loss_actor"]
+            # without an actor step, the separate parts compute no actor loss
+            keys = ["loss_value"] + ([] if critic_first and not step_actor[i] else ["loss_actor"])
             if sac:  # SACLoss reports its temperature and entropy instead
-                keys += ["loss_alpha", "alpha", "entropy"]
-            else:
+                keys += ["loss_alpha", "alpha"] + ([] if critic_first else ["entropy"])
+            elif not critic_first:  # the separate parts return their losses only
                 keys += ["target_value", "pred_value", "state_action_value_actor"]
             for key in keys:
                 close(got[key], out[names.get(key, key)], f"seed {s} step {i} {key}")
@@ -453,3 +457,35 @@ def test_a_group_sample_is_each_seeds_own_sample(path):
                 assert torch.equal(got[step][i].get(key), want.get(key)), (step, i, key)
     for a, b in zip(next_draws, probe(), strict=True):
         assert torch.equal(a, b)
+
+
+@pytest.mark.parametrize("algorithm", ["ddpg", "td3", "rave"])
+def test_critic_first_actor_learns_through_the_stepped_critics(algorithm):
+    """``optim.critic_first``: the actor's gradient is its loss's gradient through the
+    critics after their step, and not the one through the critics before it (what the
+    default's single backward pass over the summed losses gives)."""
+    # a large critic step, so that the two gradients differ visibly
+    cfg, agent = learner(algorithm, 0, "optim.critic_first=true", "optim.lr_critic=0.1")
+    loss, data = agent.loss, batch(1)[0]
+    actor = [p for p in loss.actor_network_params.values(True, True) if p.requires_grad]
+    before = [p.detach().clone() for p in actor]
+    actor_loss = loss.actor_loss if algorithm == "td3" else loss.loss_actor
+
+    def actor_grads():
+        for p in actor:
+            p.grad = None
+        actor_loss(data.clone())[0].backward()
+        return [p.grad.clone() for p in actor]
+
+    through_old = actor_grads()
+    make_agent_step(cfg, loss, agent.optimizers, agent.target_updater)(data.clone(), True)
+    got = [p.grad.clone() for p in actor]
+    with torch.no_grad():  # the actor as it was, the critics as the step left them
+        for p, b in zip(actor, before, strict=True):
+            p.copy_(b)
+    through_new = actor_grads()
+    for g, want in zip(got, through_new, strict=True):
+        assert torch.equal(g, want)
+    gap = max(float((g - o).abs().max()) for g, o in zip(got, through_old, strict=True))
+    scale = max(float(o.abs().max()) for o in through_old)
+    assert gap > 1e-2 * scale

@@ -603,6 +603,7 @@ def make_seed_group(cfg: DictConfig, agents: list[Agent], **kwargs):
         world_model_losses=[a.world_model_trainer.loss for a in agents] if model_based else None,
         lr_world_model=cfg.world_model.lr if model_based else None,
         lr_alpha=cfg.optim.lr_alpha if ALGORITHMS[cfg.algorithm].loss == "sac" else None,
+        critic_first=cfg.optim.critic_first,
         **kwargs,
     )
 

@@ -446,6 +446,8 @@ def _check_ppo(cfg: DictConfig, rule) -> None:
          "null with algorithm=ppo (its critic is V(s), there is no Q(s, a) to log)")  # fmt: skip
     rule(("compile.enabled",), lambda: not cfg.compile.enabled, "compile.enabled",
          "false with algorithm=ppo (its update is not compiled)")  # fmt: skip
+    rule(("optim.critic_first",), lambda: not cfg.optim.critic_first, "optim.critic_first",
+         "false with algorithm=ppo (its actor and critic share one clipped-objective step)")  # fmt: skip
 
 
 def resolve_config(cfg: DictConfig) -> DictConfig:

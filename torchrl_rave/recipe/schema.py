@@ -296,6 +296,16 @@ class OptimConfig:
     gamma: float = key(0.99, "discount", UNIT_INTERVAL)
     tau: float = key(0.005, "soft target update rate", Rule(lambda v: 0 < v <= 1, "in (0, 1]"))
     utd_ratio: float = key(1.0, "agent updates per collected frame", POSITIVE)
+    critic_first: bool = key(
+        False,
+        (
+            "step the critics before the actor's (and `sac`'s temperature's) loss is "
+            "computed, so the actor learns through the updated critics, as CleanRL's "
+            "scripts and TorchRL's sota TD3 script do; false: one backward pass over the "
+            "summed losses from one forward pass, as TorchRL's sota SAC script does. Not "
+            "for `ppo`"
+        ),
+    )
 
 
 @dataclass

@@ -19,7 +19,9 @@ from collections.abc import Callable
 import torch
 from omegaconf import DictConfig
 from tensordict import TensorDictBase
+from torchrl.objectives import SACLoss, TD3Loss
 
+from torchrl_rave.objectives import EnsembleDDPGLoss
 from torchrl_rave.objectives.compile import compile_loss
 from torchrl_rave.recipe.agent import critic_loss_key
 from torchrl_rave.recipe.config import learning_start
@@ -28,6 +30,8 @@ from torchrl_rave.recipe.metrics import record_update
 __all__ = [
     "AgentLearner",
     "agent_update",
+    "critic_first_update",
+    "split_losses",
     "make_agent_step",
     "ppo_update",
     "total_loss",
@@ -68,15 +72,92 @@ def agent_update(
     return out
 
 
+def split_losses(loss) -> tuple[Callable, Callable]:
+    """The critics' and the actor's parts of ``loss``, each ``batch -> {name: output}``,
+    for :func:`critic_first_update`: ``EnsembleDDPGLoss.loss_value`` / ``loss_actor``,
+    ``TD3Loss.value_loss`` / ``actor_loss``, ``SACLoss.qvalue_v2_loss`` / ``actor_loss``
+    with the temperature's loss on the actor's draws (as ``SACLoss.forward`` computes it).
+    Each part draws its random numbers in the order ``loss(batch)`` draws them."""
+
+    if isinstance(loss, EnsembleDDPGLoss):
+        return (
+            lambda batch: {"loss_value": loss.loss_value(batch)[0]},
+            lambda batch: {"loss_actor": loss.loss_actor(batch)[0]},
+        )
+    if isinstance(loss, TD3Loss):
+        return (
+            lambda batch: {"loss_qvalue": loss.value_loss(batch)[0]},
+            lambda batch: {"loss_actor": loss.actor_loss(batch)[0]},
+        )
+    if isinstance(loss, SACLoss) and loss._version == 2:
+
+        def actor(batch):
+            alpha = loss._alpha
+            loss_actor, meta = loss.actor_loss(batch)
+            loss_alpha = loss._reduce_loss(
+                loss.alpha_loss(meta["log_prob"]),
+                tensordict=batch,
+                weights=loss._maybe_get_priority_weight(batch),
+            )
+            return {"loss_actor": loss_actor, "loss_alpha": loss_alpha, "alpha": alpha}
+
+        return lambda batch: {"loss_qvalue": loss.qvalue_v2_loss(batch)[0]}, actor
+    raise TypeError(
+        f"optim.critic_first: no critic and actor parts are known for {type(loss).__name__} "
+        "(EnsembleDDPGLoss, TD3Loss and SACLoss v2 have them)"
+    )
+
+
+def critic_first_update(
+    optimizers: dict, target_updater, batch: TensorDictBase, parts, step_actor=True
+) -> dict:
+    """One agent step with the critics stepped first (``optim.critic_first``): the critics'
+    loss, its backward and step; then, with ``step_actor``, the actor's (and SAC
+    temperature's) loss through the updated critics, its backward and steps, and the soft
+    target update, as CleanRL's scripts and TorchRL's sota TD3 script order them.
+    ``parts``: :func:`split_losses` (compiled or not). Returns the loss outputs (no
+    ``loss_actor`` without ``step_actor``)."""
+    critic_part, actor_part = parts
+    out = critic_part(batch)
+    ((key, value),) = out.items()
+    optimizers["critic"].zero_grad()
+    value.backward()
+    optimizers["critic"].step()
+    out[key] = value.detach()
+    if step_actor:
+        actor_out = actor_part(batch)
+        for name in ("actor", "alpha"):
+            if name in optimizers:
+                optimizers[name].zero_grad()
+        sum(v for k, v in actor_out.items() if k.startswith("loss_")).backward()
+        optimizers["actor"].step()
+        if "alpha" in optimizers:
+            optimizers["alpha"].step()
+        target_updater.step()
+        out.update({k: v.detach() for k, v in actor_out.items()})
+    return out
+
+
 def make_agent_step(cfg: DictConfig, loss, optimizers: dict, target_updater):
-    """The recipe's agent update on a batch, ``agent_step(batch, step_actor)``; with
-    ``compile.enabled`` its loss forward goes through
+    """The recipe's agent update on a batch, ``agent_step(batch, step_actor)``: one
+    backward pass over the summed losses (:func:`agent_update`), or with
+    ``optim.critic_first`` the critics stepped before the actor's loss
+    (:func:`critic_first_update`). With ``compile.enabled`` each loss forward goes through
     :func:`~torchrl_rave.objectives.compile.compile_loss` (``compile.mode``), compiled at
     the first call. (The world model's step is
     :class:`~torchrl_rave.trainers.WorldModelTrainer`'s, compiled alike.)"""
-    loss_fn = total_loss(loss)
-    if cfg.compile.enabled:
-        loss_fn = compile_loss(loss_fn, cfg.compile.mode)
+
+    def compiled(fn):
+        return compile_loss(fn, cfg.compile.mode) if cfg.compile.enabled else fn
+
+    if cfg.optim.critic_first:
+        parts = tuple(compiled(part) for part in split_losses(loss))
+
+        def agent_step(batch, step_actor=True):
+            return critic_first_update(optimizers, target_updater, batch, parts, step_actor)
+
+        return agent_step
+    loss_fn = compiled(total_loss(loss))
 
     def agent_step(batch, step_actor=True):
         return agent_update(loss, optimizers, target_updater, batch, step_actor, loss_fn)

@@ -222,6 +222,16 @@ class SeedStreams:
         return torch.stack(out, dim)
 
 
+def _step(optimizers, loss: Tensor) -> None:
+    """``loss``'s backward pass and the steps of ``optimizers`` (one or several)."""
+    optimizers = [optimizers] if isinstance(optimizers, torch.optim.Optimizer) else list(optimizers)
+    for opt in optimizers:
+        opt.zero_grad()
+    loss.backward()
+    for opt in optimizers:
+        opt.step()
+
+
 def _randn_like(x: Tensor, streams: SeedStreams | None) -> Tensor:
     """Standard normal noise shaped as ``x`` (the seed leading): seed by seed from
     ``streams``, or one draw for the group."""
@@ -271,6 +281,10 @@ class SeedGroup:
             normal draw shaped as ``action``: TD3's target smoothing before scaling and
             clipping, SAC's pre-tanh ``eps``. Defaults to ``randn`` noise.
         lr_alpha (float, optional): SAC's temperature learning rate (required for SAC).
+        critic_first (bool, optional): step the critics before the actor's (and SAC
+            temperature's) loss is computed, as
+            :func:`~torchrl_rave.recipe.update.critic_first_update` does for one learner.
+            Defaults to ``False``: one backward pass over the summed losses.
 
     After construction every learner's parameters, target parameters and world-model
     statistics are views of the group's tensors (see the module's docstring); train with
@@ -319,8 +333,10 @@ class SeedGroup:
         bootstrap_indices: Callable[[int, int], Tensor] | None = None,
         policy_noise_draw: Callable[[Tensor], Tensor] | None = None,
         lr_alpha: float | None = None,
+        critic_first: bool = False,
     ) -> None:
         losses = list(losses)
+        self.critic_first = bool(critic_first)
         if not losses:
             raise ValueError("a seed group needs at least one learner")
         if streams is not None and streams.num_seeds != len(losses):
@@ -603,18 +619,23 @@ class SeedGroup:
                 target = td0_return_estimate(self.gamma, next_value, reward, terminated)
         current = self._q(self.critic, obs, action)
         loss_value = (current - target.unsqueeze(1)).pow(2).sum(1).mean(-1)
+        if self.critic_first:
+            _step(self.critic_optimizer, loss_value.sum())
         new_action, log_prob = self._sac_action(obs)
         q_actor = self._q(self.critic, obs, new_action, detach=True)
         loss_actor = (alpha.view(-1, 1) * log_prob - q_actor.min(1)[0]).mean(-1)
         loss_alpha = (-self.log_alpha.view(-1, 1) * (log_prob.detach() + self.target_entropy)).mean(
             -1
         )
-        for opt in self.optimizers().values():
-            opt.zero_grad()
-        (loss_value.sum() + loss_actor.sum() + loss_alpha.sum()).backward()
-        self.critic_optimizer.step()
-        self.actor_optimizer.step()
-        self.alpha_optimizer.step()
+        if self.critic_first:
+            _step((self.actor_optimizer, self.alpha_optimizer), loss_actor.sum() + loss_alpha.sum())
+        else:
+            for opt in self.optimizers().values():
+                opt.zero_grad()
+            (loss_value.sum() + loss_actor.sum() + loss_alpha.sum()).backward()
+            self.critic_optimizer.step()
+            self.actor_optimizer.step()
+            self.alpha_optimizer.step()
         with torch.no_grad():
             torch._foreach_lerp_(self._lerp[0], self._lerp[1], self.tau)
         return TensorDict(
@@ -634,7 +655,8 @@ class SeedGroup:
     def update(self, batch: TensorDictBase, step_actor: bool = True) -> TensorDict:
         """One agent update of every seed on its own rows of ``batch`` (``[S, B]``):
         critics, then (with ``step_actor``) actor and soft target update, as
-        :func:`~torchrl_rave.recipe.update.agent_update` does for one learner. Returns
+        :func:`~torchrl_rave.recipe.update.agent_update` (or, with ``critic_first``,
+        :func:`~torchrl_rave.recipe.update.critic_first_update`) does for one learner. Returns
         per-seed outputs (batch size ``[S]``): ``loss_value``, ``loss_actor``,
         ``target_value`` ``[S, B]``, ``pred_value`` and ``state_action_value_actor``
         ``[S, K, B]`` and the estimator's diagnostics. SAC steps its actor and temperature
@@ -645,15 +667,21 @@ class SeedGroup:
         obs, action, _, _, _ = self._read(batch)
         current = self._q(self.critic, obs, action)  # [S, K, B]
         loss_value = (current - target.unsqueeze(1)).pow(2).sum(1).mean(-1)  # [S]
+        if self.critic_first:
+            _step(self.critic_optimizer, loss_value.sum())
         q_actor = self._q(self.critic, obs, self._policy(self.actor, obs), detach=True)
         # the K critics' mean (EnsembleDDPGLoss), the first critic's value (TD3Loss)
         loss_actor = (-(q_actor[:, 0] if self.td3 else q_actor.mean(1))).mean(-1)  # [S]
-        self.actor_optimizer.zero_grad()
-        self.critic_optimizer.zero_grad()
-        (loss_value.sum() + loss_actor.sum()).backward()
-        self.critic_optimizer.step()
+        if not self.critic_first:
+            self.actor_optimizer.zero_grad()
+            self.critic_optimizer.zero_grad()
+            (loss_value.sum() + loss_actor.sum()).backward()
+            self.critic_optimizer.step()
         if step_actor:
-            self.actor_optimizer.step()
+            if self.critic_first:
+                _step(self.actor_optimizer, loss_actor.sum())
+            else:
+                self.actor_optimizer.step()
             with torch.no_grad():
                 torch._foreach_lerp_(self._lerp[0], self._lerp[1], self.tau)
         return TensorDict(
