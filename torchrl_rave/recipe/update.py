@@ -114,7 +114,7 @@ def critic_first_update(
     """One agent step with the critics stepped first (``optim.critic_first``): the critics'
     loss, its backward and step; then, with ``step_actor``, the actor's (and SAC
     temperature's) loss through the updated critics, its backward and steps, and the soft
-    target update, as CleanRL's scripts and TorchRL's sota TD3 script order them.
+    target update, as CleanRL's scripts and TorchRL's sota DDPG and TD3 scripts order them.
     ``parts``: :func:`split_losses` (compiled or not). Returns the loss outputs (no
     ``loss_actor`` without ``step_actor``)."""
     critic_part, actor_part = parts
