@@ -161,6 +161,25 @@ class TestExploration:
             actor[0].module[-1].bias.fill_(100.0)  # saturate the tanh
             assert actor(td)["action"].item() == pytest.approx(3.0)
 
+    @pytest.mark.parametrize("scale, floor", [(1.0, 1e-4), (0.2, 0.05)])
+    def test_sac_policy_scale_starts_at_its_setting_and_keeps_its_floor(self, scale, floor):
+        """``network.default_policy_scale``: the pre-tanh scale where the network outputs
+        0; ``network.scale_lb``: none falls below it (nor below the mapping's own floor of
+        0.01), however negative the output."""
+        cfg = make_cfg(*TINY, "algorithm=sac", f"network.default_policy_scale={scale}",
+                       f"network.scale_lb={floor}")  # fmt: skip
+        env = make_env(cfg, torch.device("cpu"))
+        actor, _ = make_actor(cfg, env, ALGORITHMS["sac"])
+        td = env.reset()
+        last = actor.module[0].module[0][-1]  # the MLP's output layer
+        with torch.no_grad():
+            last.weight.zero_()
+            last.bias.zero_()
+            assert actor(td.clone())["scale"].item() == pytest.approx(scale, rel=1e-5)
+            last.bias.fill_(-100.0)
+            least = actor(td.clone())["scale"].item()
+            assert least == pytest.approx(max(floor, 0.01), rel=1e-5)
+
     def test_epsilon_noise_rate_in_collected_data(self):
         cfg = make_cfg(*TINY, "exploration.epsilon=0.05", "exploration.sigma=0.5")
         env = make_env(cfg, torch.device("cpu"))

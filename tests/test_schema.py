@@ -36,7 +36,7 @@ class TestSchema:
                     yield f"{prefix}{k}"
 
         assert sorted(leaves(OmegaConf.to_container(make_cfg()))) == sorted(keys)
-        assert len(keys) == 86  # 75, six reward.*, four curriculum.* and seeds
+        assert len(keys) == 88  # 77, six reward.*, four curriculum.* and seeds
 
     def test_defaults_pass_their_own_checks(self):
         for preset in PRESETS:

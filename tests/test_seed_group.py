@@ -134,21 +134,27 @@ def close(a, b, what):
     torch.testing.assert_close(a, b, rtol=2e-5, atol=2e-6, msg=lambda m: f"{what}: {m}")
 
 
+CRITIC_FIRST = ("optim.critic_first=true",)
+POLICY_SCALE = ("network.default_policy_scale=0.2", "network.scale_lb=0.05")
+
+
 @pytest.mark.parametrize(
-    "algorithm, S, large, critic_first",
-    [(a, S, False, False) for a in ALGORITHMS for S in (1, 2, 3)]
-    + [("rave", 2, True, False), ("ddpg", 2, True, False)]
-    + [(a, 2, False, True) for a in ("ddpg", "rave", "td3", "sac", "rave_sac")],
+    "algorithm, S, large, extra",
+    [(a, S, False, ()) for a in ALGORITHMS for S in (1, 2, 3)]
+    + [("rave", 2, True, ()), ("ddpg", 2, True, ())]
+    + [(a, 2, False, CRITIC_FIRST) for a in ("ddpg", "rave", "td3", "sac", "rave_sac")]
+    + [("sac", 2, False, POLICY_SCALE)],
 )
-def test_each_seed_is_its_single_update(algorithm, S, large, critic_first, monkeypatch):
+def test_each_seed_is_its_single_update(algorithm, S, large, extra, monkeypatch):
     """Two steps (world model, then agent) of a group of S equal each seed's own steps on
     its own rows: losses, targets, diagnostics, gradients and parameters after Adam. With
     ``large``, every layer takes the path of outputs larger than the caches (bmm, then the
-    bias added in place); with ``critic_first``, the critics step before the actor's loss
-    (``optim.critic_first``) in the group and in each single learner."""
+    bias added in place); with ``extra``, the group's and each single learner's config
+    (``optim.critic_first``: the critics step before the actor's loss; the SAC policy's
+    scale mapping)."""
     if large:
         monkeypatch.setattr(ensemble, "_LARGE", 0)
-    extra = ["optim.critic_first=true"] if critic_first else []
+    critic_first = CRITIC_FIRST[0] in extra
     cfg, _ = learner(algorithm, 0, *extra)
     singles = [learner(algorithm, s, *extra)[1] for s in range(S)]
     grouped = [learner(algorithm, s, *extra)[1] for s in range(S)]

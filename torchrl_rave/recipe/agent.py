@@ -435,7 +435,11 @@ def make_actor(cfg: DictConfig, env, algo: Algorithm):
     S, A = env.observation_spec["observation"].shape[-1], spec.shape[-1]
     if algo.loss in ("sac", "ppo"):
         if algo.loss == "sac":  # scale from the network
-            head = [_mlp(cfg, S, 2 * A, cfg.network.actor_cells), NormalParamExtractor()]
+            extractor = NormalParamExtractor(
+                scale_mapping=f"biased_softplus_{float(cfg.network.default_policy_scale)}",
+                scale_lb=cfg.network.scale_lb,
+            )
+            head = [_mlp(cfg, S, 2 * A, cfg.network.actor_cells), extractor]
         else:  # a learned scale that does not depend on the state
             head = [_mlp(cfg, S, A, cfg.network.actor_cells), AddStateIndependentNormalScale(A)]
         actor = ProbabilisticActor(

@@ -273,6 +273,23 @@ class NetworkConfig:
         "K; null: the algorithm's own (ddpg 1; mve, steve, rave 4; td3, sac, steve_sac, rave_sac 2)",
         optional(POSITIVE_INT),
     )
+    default_policy_scale: float = key(
+        1.0,
+        (
+            "`sac`, `steve_sac`, `rave_sac`: the policy's pre-tanh scale where its network "
+            "outputs 0 (tensordict's `biased_softplus` scale mapping, as TorchRL's sota SAC "
+            "script names it)"
+        ),
+        Rule(lambda v: v > 0.01, "> 0.01 (the mapping's floor)"),
+    )
+    scale_lb: float = key(
+        1e-4,
+        (
+            "`sac`, `steve_sac`, `rave_sac`: the policy's least pre-tanh scale (the "
+            "mapping's own floor, 0.01, holds below it)"
+        ),
+        POSITIVE,
+    )
 
 
 @dataclass
