@@ -129,6 +129,8 @@ class TestAllProblemsAtOnce:
             ("exploration.sigma=inf", "exploration.sigma=inf is invalid"),
             ("world_model.lr=abc", "world_model.lr='abc' is invalid: expected a value of type float"),
             ("world_model.reward_layers=1", "world_model.reward_layers=1 is invalid: expected an integer >= 2"),
+            ("network.default_policy_scale=0.005", "network.default_policy_scale=0.005 is invalid: expected > 0.01"),
+            ("network.scale_lb=0", "network.scale_lb=0 is invalid: expected a finite number > 0"),
         ],
     )  # fmt: skip
     def test_values_that_cannot_work_are_named(self, override, problem):
