@@ -318,9 +318,9 @@ class OptimConfig:
         (
             "step the critics before the actor's (and `sac`'s temperature's) loss is "
             "computed, so the actor learns through the updated critics, as CleanRL's "
-            "scripts and TorchRL's sota DDPG and TD3 scripts do; false: one backward pass over the "
-            "summed losses from one forward pass, as TorchRL's sota SAC script does. Not "
-            "for `ppo`"
+            "scripts and TorchRL's sota DDPG and TD3 scripts do; false: one backward pass "
+            "over the summed losses from one forward pass, as TorchRL's sota SAC script "
+            "does. Not for `ppo`"
         ),
     )
 
