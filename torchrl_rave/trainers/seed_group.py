@@ -660,15 +660,21 @@ class SeedGroup:
         per-seed outputs (batch size ``[S]``): ``loss_value``, ``loss_actor``,
         ``target_value`` ``[S, B]``, ``pred_value`` and ``state_action_value_actor``
         ``[S, K, B]`` and the estimator's diagnostics. SAC steps its actor and temperature
-        at every update, and returns ``alpha`` and ``entropy`` besides."""
+        at every update, and returns ``alpha`` and ``entropy`` besides. With
+        ``critic_first`` and without ``step_actor``, the actor's loss is not computed and
+        the two actor entries are absent."""
         if self.sac:
             return self._update_sac(batch)
         target, diagnostics = self.value_target(batch)
         obs, action, _, _, _ = self._read(batch)
         current = self._q(self.critic, obs, action)  # [S, K, B]
         loss_value = (current - target.unsqueeze(1)).pow(2).sum(1).mean(-1)  # [S]
+        out = {"loss_value": loss_value.detach(), "target_value": target,
+               "pred_value": current.detach(), **diagnostics}  # fmt: skip
         if self.critic_first:
             _step(self.critic_optimizer, loss_value.sum())
+            if not step_actor:  # as critic_first_update: no actor loss without its step
+                return TensorDict(out, batch_size=[self.num_seeds])
         q_actor = self._q(self.critic, obs, self._policy(self.actor, obs), detach=True)
         # the K critics' mean (EnsembleDDPGLoss), the first critic's value (TD3Loss)
         loss_actor = (-(q_actor[:, 0] if self.td3 else q_actor.mean(1))).mean(-1)  # [S]
@@ -684,17 +690,8 @@ class SeedGroup:
                 self.actor_optimizer.step()
             with torch.no_grad():
                 torch._foreach_lerp_(self._lerp[0], self._lerp[1], self.tau)
-        return TensorDict(
-            {
-                "loss_value": loss_value.detach(),
-                "loss_actor": loss_actor.detach(),
-                "target_value": target,
-                "pred_value": current.detach(),
-                "state_action_value_actor": q_actor.detach(),
-                **diagnostics,
-            },
-            batch_size=[self.num_seeds],
-        )
+        out.update(loss_actor=loss_actor.detach(), state_action_value_actor=q_actor.detach())
+        return TensorDict(out, batch_size=[self.num_seeds])
 
     def _bootstrap_indices(self, B: int, device) -> Tensor:
         N, S = self.world_model.num_models, self.num_seeds
