@@ -189,7 +189,7 @@ def test_each_seed_is_its_single_update(algorithm, S, large, extra, monkeypatch)
             # without an actor step, the separate parts compute no actor loss
             keys = ["loss_value"] + ([] if critic_first and not step_actor[i] else ["loss_actor"])
             if critic_first and not step_actor[i]:  # nor does the group's critics-only step
-                assert "loss_actor" not in got.keys()
+                assert "loss_actor" not in got
             if sac:  # SACLoss reports its temperature and entropy instead
                 keys += ["loss_alpha", "alpha"] + ([] if critic_first else ["entropy"])
             elif not critic_first:  # the separate parts return their losses only
