@@ -60,19 +60,24 @@ class TestMujocoPreset:
         common = {"network.actor_cells": 256, "network.critic_cells": 256,
                   "network.num_layers": 3, "replay_buffer.batch_size": 256,
                   "world_model.size": "mujoco"}  # fmt: skip
-        own = {  # CleanRL's single-file scripts: SAC's critic and temperature rates, 5k start
+        own = {  # CleanRL's single-file scripts: SAC's critic and temperature rates, 5k
+            # start; TD3 (alone) steps its critics first (docs/results/critic_first100k.md)
             "ddpg": {"optim.lr_critic": 3e-4, "optim.lr_alpha": 3e-4,
-                     "collector.init_random_frames": 25_000},
-            "td3": {"optim.lr_critic": 3e-4, "collector.init_random_frames": 25_000},
-            "rave": {"optim.lr_critic": 3e-4, "collector.init_random_frames": 25_000},
+                     "collector.init_random_frames": 25_000, "optim.critic_first": False},
+            "td3": {"optim.lr_critic": 3e-4, "collector.init_random_frames": 25_000,
+                    "optim.critic_first": True},
+            "rave": {"optim.lr_critic": 3e-4, "collector.init_random_frames": 25_000,
+                     "optim.critic_first": False},
             "sac": {"optim.lr_critic": 1e-3, "optim.lr_alpha": 1e-3,
-                    "collector.init_random_frames": 5_000},
+                    "collector.init_random_frames": 5_000, "optim.critic_first": False},
         }  # fmt: skip
         for algorithm, values in own.items():
             cfg = default_config(preset="mujoco", algorithm=algorithm)
             for key, value in {**common, **values}.items():
                 assert OmegaConf.select(cfg, key) == value, (algorithm, key)
         assert default_config(preset="mujoco", algorithm="ppo").network.actor_cells == 64
+        # the CPU preset keeps one backward pass for every learner
+        assert default_config(algorithm="td3").optim.critic_first is False
 
     def test_the_command_line_wins_over_the_algorithms_own_values(self):
         cfg = default_config("algorithm=sac", "optim.lr_critic=5e-4", preset="mujoco")

@@ -468,6 +468,40 @@ def test_an_algorithm_can_read_another_studys_cells(tmp_path):
                                          algorithm_cells_from=bad))  # fmt: skip
 
 
+def test_an_algorithm_can_read_another_studys_cells_under_other_labels(tmp_path):
+    """``algorithm_cells_from: {td3: {study, tasks}}``: td3's Hopper-v5 cells are the
+    other study's ``Hopper-v5-order`` cells (its arm of another setting), the report reads
+    their numbers, and the mapping names only this study's labels, with a known key."""
+    results = tmp_path / "results"
+    for seed, (a, b) in enumerate([(10, 20), (30, 40)]):
+        cell = results / "arms" / "Hopper-v5-order" / "td3" / f"seed{seed}"
+        for metric, rows in {"eval/return": [(100, a), (200, b)],
+                             "eval/falling_rate": [(100, 1), (200, 1)]}.items():  # fmt: skip
+            csv = cell / "td3" / "scalars" / f"{metric}.csv"
+            csv.parent.mkdir(parents=True, exist_ok=True)
+            csv.write_text("".join(f"{step},{value}\n" for step, value in rows))
+        (cell / "cell.json").write_text(json.dumps({"config": {"eval": {"episodes": 10}}}))
+    mapped = {"td3": {"study": "arms", "tasks": {"Hopper-v5": "Hopper-v5-order"}}}
+    config = write_study(tmp_path, algorithms=["td3"], algorithm_cells_from=mapped)
+    loaded = study.load_study(config)
+    assert study.missing_cells(loaded, results, tmp_path / "runs") == {}  # nothing to run
+    assert study.result_dir(results, loaded, "Hopper-v5", "td3", 1) == (
+        results / "arms" / "Hopper-v5-order" / "td3" / "seed1"
+    )
+    figures = tmp_path / "figures"
+    study.main(["report", "--config", str(config), "--results", str(results),
+                "--figures", str(figures)])  # fmt: skip
+    # at 100: [10, 30]; at 200: [20, 40]
+    assert "| Hopper-v5 | td3 | 2 | 20 ± 127 | 30 ± 127 |" in (figures / "tiny.md").read_text()
+    for bad, match in (
+        ({"td3": {"study": "arms", "tasks": {"Walker2d-v5": "x"}}}, "map some of the task labels"),
+        ({"td3": {"study": "arms", "task": {"Hopper-v5": "x"}}}, "algorithm_cells_from maps one"),
+        ({"td3": {"tasks": {"Hopper-v5": "x"}}}, "algorithm_cells_from maps one"),
+    ):
+        with pytest.raises(ValueError, match=match):
+            study.load_study(write_study(tmp_path, algorithms=["td3"], algorithm_cells_from=bad))
+
+
 @pytest.mark.parametrize(
     "name", sorted(p.stem for p in (Path(study.__file__).parent / "study").glob("*.yaml"))
 )

@@ -613,10 +613,13 @@ _SAC_MUJOCO = {
 }
 #: A preset's values for one algorithm, over the preset's own and under the command line:
 #: where the field publishes other settings for that learner (SAC's learning rates and
-#: random start, PPO's network width). SAC with value expansion keeps SAC's values and
-#: pretrains its world model on SAC's random start, so that it learns from the same frame.
+#: random start, PPO's network width), or where a study here chose one (TD3 steps its
+#: critics first: ``docs/results/critic_first100k.md``). SAC with value expansion keeps
+#: SAC's values and pretrains its world model on SAC's random start, so that it learns from
+#: the same frame.
 PRESET_ALGORITHMS: dict[str, dict[str, dict]] = {
     "mujoco": {
+        "td3": {"optim": {"critic_first": True}},
         "sac": _SAC_MUJOCO,
         **{name: {**_SAC_MUJOCO, "world_model": {"pretrain_frames": 5_000}}
            for name in ("steve_sac", "rave_sac")},

@@ -60,7 +60,9 @@ def load_study(path: Path) -> DictConfig:
     reference implementation's runs of the same tasks, algorithms and seeds, which the
     report's calibration table sets beside the study's own) and its
     ``algorithm_cells_from`` (optional: algorithm -> the study whose cells of that
-    algorithm, same task labels and seeds, this study reads instead of running them).
+    algorithm, same task labels and seeds, this study reads instead of running them; or
+    -> ``{study: <name>, tasks: {<label>: <that study's label>}}`` where the labels
+    differ).
     Every problem is raised at once, as one
     :class:`~torchrl_rave.recipe.config.ConfigError`."""
     study = OmegaConf.load(path)
@@ -104,11 +106,29 @@ def load_study(path: Path) -> DictConfig:
         if len(pair) != 2 or not set(pair) <= set(labels):
             problems.append(f"a contrast is two of the task labels {labels}, got {list(pair)}")
     borrowed = study.get("algorithm_cells_from", None) or {}
-    for algorithm, source in borrowed.items():
-        if algorithm not in algorithms or not isinstance(source, str) or source == study.name:
+    for algorithm, entry in borrowed.items():
+        source, renamed = _borrowed_entry(entry)
+        shown = OmegaConf.to_container(entry) if isinstance(entry, DictConfig) else entry
+        extra = set(entry) - {"study", "tasks"} if isinstance(entry, DictConfig) else set()
+        if (
+            algorithm not in algorithms
+            or not isinstance(source, str)
+            or source == study.name
+            or extra
+        ):
             problems.append(
                 f"algorithm_cells_from maps one of the algorithms {algorithms} to another "
-                f"study's name, got {algorithm}: {source!r}"
+                f"study's name, or to {{study: <name>, tasks: {{<label>: <its label>}}}}, "
+                f"got {algorithm}: {shown!r}"
+            )
+        elif (
+            not isinstance(renamed, DictConfig | dict)
+            or not set(renamed) <= set(labels)
+            or not all(isinstance(v, str) for v in renamed.values())
+        ):
+            problems.append(
+                f"algorithm_cells_from's tasks for {algorithm} map some of the task labels "
+                f"{labels} to {source}'s labels, got {shown['tasks']!r}"
             )
     at = list(study.get("report_at", None) or [])
     if not all(isinstance(f, int) and 0 < f <= study.frames for f in at) or at != sorted(set(at)):
@@ -126,16 +146,30 @@ def report_frames(study: DictConfig) -> list[int]:
     return list(study.get("report_at", None) or [study.frames // 2, study.frames])
 
 
+def _borrowed_entry(entry) -> tuple[object, object]:
+    """An ``algorithm_cells_from`` entry as (the study, {this study's label: that study's
+    label}): a study's name reads the same labels; ``{study: <name>, tasks: {...}}`` reads
+    the labels ``tasks`` maps (the others unchanged)."""
+    if isinstance(entry, DictConfig | dict):
+        return entry.get("study"), entry.get("tasks") or {}
+    return entry, {}
+
+
 def cells_elsewhere(study: DictConfig, task: str, algorithm: str) -> str | None:
     """The study that runs and keeps the cells of (task label, algorithm): the one the
     algorithm's ``algorithm_cells_from`` entry names, or the task's ``cells_from``;
     ``None`` when this study runs them."""
     borrowed = (study.get("algorithm_cells_from", None) or {}).get(algorithm)
-    return borrowed or next((t.cells_from for t in tasks(study) if t.label == task), None)
+    if borrowed is not None:
+        return _borrowed_entry(borrowed)[0]
+    return next((t.cells_from for t in tasks(study) if t.label == task), None)
 
 
 def result_dir(results: Path, study: DictConfig, task: str, algorithm: str, seed: int) -> Path:
     """Where the finished cell of (task label, algorithm, seed) is kept: under the study's
-    name, or under the one :func:`~torchrl_rave.recipe.studies.cells_elsewhere` names."""
+    name, or under the one :func:`~torchrl_rave.recipe.studies.cells_elsewhere` names (and
+    there under the label its ``algorithm_cells_from`` entry maps ``task`` to)."""
     source = cells_elsewhere(study, task, algorithm)
-    return results / (source or study.name) / task / algorithm / f"seed{seed}"
+    borrowed = (study.get("algorithm_cells_from", None) or {}).get(algorithm)
+    label = _borrowed_entry(borrowed)[1].get(task, task) if borrowed is not None else task
+    return results / (source or study.name) / label / algorithm / f"seed{seed}"
