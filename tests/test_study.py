@@ -42,8 +42,9 @@ def write_cell(
     metrics: dict[str, list],
     episodes: int = 10,
     task: str = "Hopper-v5",
+    study: str = "tiny",
 ) -> None:
-    cell = results / "tiny" / task / algorithm / f"seed{seed}"
+    cell = results / study / task / algorithm / f"seed{seed}"
     for metric, rows in metrics.items():
         csv = cell / algorithm / "scalars" / f"{metric}.csv"
         csv.parent.mkdir(parents=True, exist_ok=True)
@@ -443,13 +444,8 @@ def test_an_algorithm_can_read_another_studys_cells(tmp_path):
     study runs only its td3 cells, keeps them under its own name, and reads ddpg's there."""
     results = tmp_path / "results"
     for seed, (a, b) in enumerate([(1, 2), (3, 4)]):
-        cell = results / "base" / "Hopper-v5" / "ddpg" / f"seed{seed}"
-        for metric, rows in {"eval/return": [(100, a), (200, b)],
-                             "time/update_s": [(100, 60), (200, 60)]}.items():  # fmt: skip
-            csv = cell / "ddpg" / "scalars" / f"{metric}.csv"
-            csv.parent.mkdir(parents=True, exist_ok=True)
-            csv.write_text("".join(f"{step},{value}\n" for step, value in rows))
-        (cell / "cell.json").write_text(json.dumps({"config": {"eval": {"episodes": 10}}}))
+        write_cell(results, "ddpg", seed, {"eval/return": [(100, a), (200, b)],
+                   "time/update_s": [(100, 60), (200, 60)]}, study="base")  # fmt: skip
     config = write_study(tmp_path, algorithms=["td3", "ddpg"],
                          algorithm_cells_from={"ddpg": "base"})  # fmt: skip
     loaded = study.load_study(config)
@@ -474,13 +470,9 @@ def test_an_algorithm_can_read_another_studys_cells_under_other_labels(tmp_path)
     their numbers, and the mapping names only this study's labels, with a known key."""
     results = tmp_path / "results"
     for seed, (a, b) in enumerate([(10, 20), (30, 40)]):
-        cell = results / "arms" / "Hopper-v5-order" / "td3" / f"seed{seed}"
-        for metric, rows in {"eval/return": [(100, a), (200, b)],
-                             "eval/falling_rate": [(100, 1), (200, 1)]}.items():  # fmt: skip
-            csv = cell / "td3" / "scalars" / f"{metric}.csv"
-            csv.parent.mkdir(parents=True, exist_ok=True)
-            csv.write_text("".join(f"{step},{value}\n" for step, value in rows))
-        (cell / "cell.json").write_text(json.dumps({"config": {"eval": {"episodes": 10}}}))
+        write_cell(results, "td3", seed, {"eval/return": [(100, a), (200, b)],
+                   "eval/falling_rate": [(100, 1), (200, 1)]},
+                   task="Hopper-v5-order", study="arms")  # fmt: skip
     mapped = {"td3": {"study": "arms", "tasks": {"Hopper-v5": "Hopper-v5-order"}}}
     config = write_study(tmp_path, algorithms=["td3"], algorithm_cells_from=mapped)
     loaded = study.load_study(config)
