@@ -155,21 +155,26 @@ def _borrowed_entry(entry) -> tuple[object, object]:
     return entry, {}
 
 
+def _cells_source(study: DictConfig, task: str, algorithm: str) -> tuple[str | None, str]:
+    """(the study that keeps the cells of (task label, algorithm), or ``None`` for this
+    one; the label they are kept under there)."""
+    borrowed = (study.get("algorithm_cells_from", None) or {}).get(algorithm)
+    if borrowed is not None:
+        source, labels = _borrowed_entry(borrowed)
+        return source, labels.get(task, task)
+    return next((t.cells_from for t in tasks(study) if t.label == task), None), task
+
+
 def cells_elsewhere(study: DictConfig, task: str, algorithm: str) -> str | None:
     """The study that runs and keeps the cells of (task label, algorithm): the one the
     algorithm's ``algorithm_cells_from`` entry names, or the task's ``cells_from``;
     ``None`` when this study runs them."""
-    borrowed = (study.get("algorithm_cells_from", None) or {}).get(algorithm)
-    if borrowed is not None:
-        return _borrowed_entry(borrowed)[0]
-    return next((t.cells_from for t in tasks(study) if t.label == task), None)
+    return _cells_source(study, task, algorithm)[0]
 
 
 def result_dir(results: Path, study: DictConfig, task: str, algorithm: str, seed: int) -> Path:
     """Where the finished cell of (task label, algorithm, seed) is kept: under the study's
     name, or under the one :func:`~torchrl_rave.recipe.studies.cells_elsewhere` names (and
     there under the label its ``algorithm_cells_from`` entry maps ``task`` to)."""
-    source = cells_elsewhere(study, task, algorithm)
-    borrowed = (study.get("algorithm_cells_from", None) or {}).get(algorithm)
-    label = _borrowed_entry(borrowed)[1].get(task, task) if borrowed is not None else task
+    source, label = _cells_source(study, task, algorithm)
     return results / (source or study.name) / label / algorithm / f"seed{seed}"
