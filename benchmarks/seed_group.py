@@ -34,6 +34,15 @@ Results go to stdout and ``benchmarks/seed_group.json`` (``--out``).
 ``GroupSampler`` against ``rb.sample()`` per seed and a stack of the samples, from replay
 buffers laid out as a Hopper-v5 run's, with the group's update in the same rounds.
 
+``--library-losses`` (``td3`` only) times the alternative to the group's own update math:
+TorchRL's ``TD3Loss`` itself, built over copies of a learner's actor and critic whose
+linear layers hold all S seeds' weights (``[S, out, in]``, one ``baddbmm`` per layer),
+on the ``[S, B]`` batch with ``reduction="none"`` and each seed's mean summed, stepped
+by fused Adam and :class:`~torchrl_rave.objectives.ForeachSoftUpdate` in the preset's
+order, against the :class:`SeedGroup` of the same learners, in paired rounds as
+``--against``. Before timing it checks that the library loss's actor loss equals each
+learner's own on its slice of a batch (``max_abs_difference``).
+
 ``--against FILE`` times a change to the group itself: the group of this checkout against
 the same group built from another copy of ``torchrl_rave/trainers/seed_group.py`` (an
 older commit's, say), in paired rounds in one process, each round timing both in turn
@@ -43,6 +52,7 @@ older commit's, say), in paired rounds in one process, each round timing both in
 from __future__ import annotations
 
 import argparse
+import copy
 import importlib.util
 import json
 import statistics
@@ -53,6 +63,7 @@ import torch
 from cli_types import count
 from provenance import provenance
 from tensordict import TensorDict
+from torchrl.objectives import TD3Loss
 from update_throughput import (
     Case,
     CountOps,
@@ -64,6 +75,7 @@ from update_throughput import (
     sync,
 )
 
+from torchrl_rave.objectives import ForeachSoftUpdate
 from torchrl_rave.recipe.agent import make_seed_group
 from torchrl_rave.recipe.group import GROUP_ALGORITHMS
 from torchrl_rave.recipe.memory import keep_freed_memory
@@ -305,6 +317,144 @@ def sampling_cost(algorithms, seeds, threads, device, seconds: float, frames: in
     return {"frames_per_seed": frames, "rows": rows}
 
 
+class _SeedLinear(torch.nn.Module):
+    """``S`` linear layers of one shape as one: ``weight`` ``[S, out, in]``, ``bias``
+    ``[S, out]``; inputs ``[S, *B, in]``, seed ``s``'s rows meeting seed ``s``'s weights."""
+
+    def __init__(self, layer: torch.nn.Linear, S: int) -> None:
+        super().__init__()
+        self.weight = torch.nn.Parameter(layer.weight.detach().expand(S, -1, -1).clone())
+        self.bias = torch.nn.Parameter(layer.bias.detach().expand(S, -1).clone())
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        S, width = self.weight.shape[0], x.shape[-1]
+        flat = x.reshape(S, -1, width)
+        y = torch.baddbmm(self.bias.unsqueeze(1), flat, self.weight.transpose(1, 2))
+        return y.view(*x.shape[:-1], y.shape[-1])
+
+
+def _seed_batched(module: torch.nn.Module, S: int) -> torch.nn.Module:
+    """A copy of ``module`` with every ``nn.Linear`` a :class:`_SeedLinear` of ``S``."""
+    module = copy.deepcopy(module)
+    for owner in list(module.modules()):
+        for name, child in list(owner.named_children()):
+            if isinstance(child, torch.nn.Linear):
+                setattr(owner, name, _SeedLinear(child, S))
+    return module
+
+
+def library_td3_case(S: int, device) -> tuple[Case, float]:
+    """TorchRL's ``TD3Loss`` over seed-batched copies of S recipe learners' networks (see
+    the module's docstring), and the largest difference between its actor loss and the
+    learners' own on a batch."""
+    cfg, agents = learners("td3", S, device)
+    losses = [a.loss for a in agents]
+    first = losses[0]
+    loss = TD3Loss(
+        _seed_batched(first.actor_network, S),
+        _seed_batched(first.qvalue_network, S),
+        num_qvalue_nets=first.num_qvalue_nets,
+        bounds=(first.min_action, first.max_action),
+        policy_noise=first.policy_noise,
+        noise_clip=first.noise_clip,
+        loss_function="l2",
+        reduction="none",
+    )
+    loss.make_value_estimator(gamma=cfg.optim.gamma)
+    with torch.no_grad():  # the learners' numbers, seed-stacked (critics: [K, S, ...])
+        for name, dim in [("actor_network_params", 0), ("target_actor_network_params", 0),
+                          ("qvalue_network_params", 1), ("target_qvalue_network_params", 1)]:  # fmt: skip
+            mine = getattr(loss, name)
+            for key, leaf in mine.items(True, True):
+                if key[-1] in ("weight", "bias"):
+                    leaf.copy_(torch.stack([getattr(x, name).get(key) for x in losses], dim))
+    leaves = {n: [p for p in getattr(loss, f"{n}_params").values(True, True) if p.requires_grad]
+              for n in ("actor_network", "qvalue_network")}  # fmt: skip
+    actor_opt = torch.optim.Adam(leaves["actor_network"], lr=cfg.optim.lr_actor, fused=True)
+    critic_opt = torch.optim.Adam(leaves["qvalue_network"], lr=cfg.optim.lr_critic, fused=True)
+    updater = ForeachSoftUpdate(loss, tau=cfg.optim.tau)
+    B = cfg.replay_buffer.batch_size
+    data = [TensorDict.maybe_dense_stack(list(b.split(B))) if S > 1 else b.unsqueeze(0)
+            for b in batches(B * S, device)]  # fmt: skip
+    with torch.no_grad():
+        mine = loss.actor_loss(data[0])[0].mean(-1)
+        theirs = torch.stack([x.actor_loss(data[0][s])[0] for s, x in enumerate(losses)])
+    difference = float((mine - theirs).abs().max())
+
+    def step(batch):
+        def seed_sum(x):
+            return x.mean(-1).sum()
+
+        if cfg.optim.critic_first:
+            critic_opt.zero_grad()
+            seed_sum(loss.value_loss(batch)[0]).backward()
+            critic_opt.step()
+            actor_opt.zero_grad()
+            seed_sum(loss.actor_loss(batch)[0]).backward()
+            actor_opt.step()
+        else:
+            critic_opt.zero_grad()
+            actor_opt.zero_grad()
+            (seed_sum(loss.value_loss(batch)[0]) + seed_sum(loss.actor_loss(batch)[0])).backward()
+            critic_opt.step()
+            actor_opt.step()
+        updater.step()
+
+    return Case(f"td3 library loss x{S}", step, data), difference
+
+
+def _paired(a: Case, b: Case, device, seconds: float) -> tuple[list[float], list[float]]:
+    """Seconds per update of ``a`` and ``b`` in paired rounds (the order alternating)."""
+    for case in (a, b):  # warm-up: optimiser moments, allocator
+        for _ in range(3):
+            case.step()
+    times: tuple[list[float], list[float]] = ([], [])
+    order = [(0, a), (1, b)]
+    end = time.perf_counter() + 2 * seconds
+    while time.perf_counter() < end:
+        for i, case in order:
+            sync(device)
+            start = time.perf_counter()
+            for _ in range(3):
+                case.step()
+            sync(device)
+            times[i].append((time.perf_counter() - start) / 3)
+        order.reverse()
+    return times
+
+
+def library_losses(seeds, threads, device, seconds: float) -> dict:
+    """The group's ``td3`` update against TorchRL's ``TD3Loss`` over seed-batched networks
+    (see the module's docstring): the median of paired rounds' time ratios."""
+    rows = []
+    for n_threads, algorithm, S in _settings(["td3"], seeds, threads, device):
+        group, _ = group_case(algorithm, S, device)
+        library, difference = library_td3_case(S, device)
+        ours, theirs = _paired(group, library, device, seconds)
+        ratios = [b / a for a, b in zip(ours, theirs, strict=True)]
+        q1, median, q3 = statistics.quantiles(ratios, n=4)
+        row = {
+            "algorithm": algorithm,
+            "threads": n_threads,
+            "seeds": S,
+            "rounds": len(ratios),
+            "group_ms": statistics.median(ours) * 1e3,
+            "library_loss_ms": statistics.median(theirs) * 1e3,
+            "library_over_group": median,
+            "library_over_group_quartiles": [q1, q3],
+            "max_abs_difference": difference,
+        }
+        rows.append(row)
+        print(
+            f"{algorithm:5s} threads={n_threads} S={S}: group {row['group_ms']:.1f} ms, "
+            f"TD3Loss over seed-batched networks {row['library_loss_ms']:.1f} ms per update; "
+            f"paired ratio {median:.3f} (quartiles {q1:.3f}-{q3:.3f}, {len(ratios)} rounds); "
+            f"actor losses differ by at most {difference:.1e}",
+            flush=True,
+        )
+    return {"rows": rows}
+
+
 def against(path: Path, algorithms, seeds, threads, device, seconds: float) -> dict:
     """This checkout's group against the group of the ``seed_group.py`` at ``path``: the
     median of paired rounds' time ratios (this / that), with its quartiles."""
@@ -322,22 +472,9 @@ def against(path: Path, algorithms, seeds, threads, device, seconds: float) -> d
         finally:
             agent_module.SeedGroup = current
         assert type(built) is baseline.SeedGroup
-        for case in (mine, theirs):  # warm-up: optimiser moments, allocator
-            for _ in range(3):
-                case.step()
-        times = {"this": [], "baseline": []}
-        order = [("this", mine), ("baseline", theirs)]
-        end = time.perf_counter() + 2 * seconds
-        while time.perf_counter() < end:
-            for name, case in order:
-                sync(device)
-                start = time.perf_counter()
-                for _ in range(3):
-                    case.step()
-                sync(device)
-                times[name].append((time.perf_counter() - start) / 3)
-            order.reverse()
-        ratios = [a / b for a, b in zip(times["this"], times["baseline"], strict=True)]
+        this, that = _paired(mine, theirs, device, seconds)
+        times = {"this": this, "baseline": that}
+        ratios = [a / b for a, b in zip(this, that, strict=True)]
         q1, median, q3 = statistics.quantiles(ratios, n=4)
         row = {
             "algorithm": algorithm,
@@ -399,6 +536,13 @@ def main(argv: list[str] | None = None) -> dict:
         "--out is given)",
     )
     parser.add_argument(
+        "--library-losses",
+        action="store_true",
+        help="instead: time the group's td3 update against TorchRL's TD3Loss over "
+        "seed-batched networks (to benchmarks/seed_group_library_<preset>.json unless --out "
+        "is given)",
+    )
+    parser.add_argument(
         "--preset", default="cpu", help="the recipe preset the learners are built with "
         "(`mujoco`: the field's sizes; to benchmarks/seed_group_<preset>.json unless --out "
         "is given)",
@@ -411,10 +555,17 @@ def main(argv: list[str] | None = None) -> dict:
         parser.error(f"--algorithms {unknown}: a seed group trains {', '.join(GROUP_ALGORITHMS)}")
     if torch.device(args.device).type == "cuda" and not torch.cuda.is_available():
         parser.error("--device cuda but torch.cuda.is_available() is False")
-    if args.repeats > 1 and (args.streams_cost or args.against or args.sampling):
+    modes = (args.streams_cost, args.against, args.sampling, args.library_losses)
+    if args.repeats > 1 and any(modes):
         parser.error("--repeats applies to the speed-up rows only")
-    if sum(map(bool, (args.streams_cost, args.against, args.sampling))) > 1:
-        parser.error("--streams-cost, --against and --sampling are different measurements")
+    if sum(map(bool, modes)) > 1:
+        parser.error("--streams-cost, --against, --sampling and --library-losses are "
+                     "different measurements")  # fmt: skip
+    if args.library_losses and args.algorithms != ["td3"]:
+        parser.error(
+            "--library-losses times td3 only (--algorithms td3): SACLoss takes one scalar "
+            "temperature, and the DDPG family's losses plan their networks as tensor calls"
+        )
     if args.against is not None and not args.against.is_file():
         parser.error(f"--against {args.against}: no such file")
     if args.out is None:
@@ -422,6 +573,7 @@ def main(argv: list[str] | None = None) -> dict:
             "seed_group_streams.json" if args.streams_cost
             else "seed_group_against.json" if args.against
             else "seed_group_sampling.json" if args.sampling
+            else f"seed_group_library_{args.preset}.json" if args.library_losses
             else "seed_group.json" if args.preset == "cpu"
             else f"seed_group_{args.preset}.json"
         )  # fmt: skip
@@ -443,6 +595,8 @@ def main(argv: list[str] | None = None) -> dict:
                 args.algorithms, args.seeds, threads, device, args.seconds, args.frames
             )
             if args.sampling
+            else library_losses(args.seeds, threads, device, args.seconds)
+            if args.library_losses
             else run(args.algorithms, args.seeds, threads, device, args.seconds, args.repeats)
         ),
     }

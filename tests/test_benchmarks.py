@@ -379,6 +379,28 @@ def test_seed_group_streams_cost_compares_the_two_ways_of_drawing(tmp_path):
     assert row["ratio"] == pytest.approx(row["own_streams_ms"] / row["shared_stream_ms"])
 
 
+def test_seed_group_library_losses_runs_torchrls_td3_loss_per_seed(tmp_path, capsys):
+    """benchmarks/seed_group.py --library-losses: TorchRL's TD3Loss over seed-batched
+    networks gives each seed the actor loss its own learner gives (to the bit), and is
+    timed against the group in paired rounds; other learners are refused, saying why."""
+    import seed_group
+
+    out = tmp_path / "library.json"
+    seed_group.main(
+        ["--library-losses", "--algorithms", "td3", "--seeds", "2", "--threads", "1",
+         "--seconds", "0.2", "--out", str(out)]
+    )  # fmt: skip
+    (row,) = json.loads(out.read_text())["rows"]
+    assert row["seeds"] == 2 and row["rounds"] >= 2
+    assert row["max_abs_difference"] == 0.0
+    assert row["group_ms"] > 0 and row["library_loss_ms"] > 0
+    q1, q3 = row["library_over_group_quartiles"]
+    assert q1 <= row["library_over_group"] <= q3
+    with pytest.raises(SystemExit):
+        seed_group.main(["--library-losses", "--algorithms", "sac", "--out", str(out)])
+    assert "SACLoss takes one scalar temperature" in capsys.readouterr().err
+
+
 def test_seed_group_against_times_the_group_of_another_file(tmp_path, capsys):
     """benchmarks/seed_group.py --against: the baseline group is built from the given copy
     of seed_group.py. A copy whose update sleeps 50 ms is the slower one in every round."""
