@@ -252,6 +252,18 @@ class TensorCall:
         return call, extractor, head
 
     @staticmethod
+    def gaussian_dist(planned: tuple, actor: TensorDictModuleBase, params, inputs, seeds=False):
+        """The action distribution of ``actor`` planned by :meth:`plan_gaussian_actor`
+        (``planned``) under ``params`` for ``inputs`` (key -> ``[R, F]``; with ``seeds``,
+        stacked seeds' parameters and ``[S, R, F]`` inputs): its MLP as tensor calls, then
+        its own extractor and distribution module."""
+        call, extractor, head = planned
+        loc, scale = extractor(call(params, inputs, seeds=seeds)["loc_scale"])
+        names = actor.module[0].out_keys
+        return head.get_dist(TensorDict(dict(zip(names, (loc, scale), strict=True)),
+                                        batch_size=loc.shape[:-1]))  # fmt: skip
+
+    @staticmethod
     def _grouped(params: dict, layers: list) -> list[_Linear]:
         """An MLP step's layers as grouped layers on stacked seeds' ``params``, each
         activation folded into the layer before it."""

@@ -9,7 +9,7 @@ from torchrl.envs.utils import ExplorationType, set_exploration_type
 from torchrl.objectives import CQLLoss, CrossQLoss, DiscreteSACLoss, REDQLoss, SACLoss
 from torchrl.objectives.sac import compute_rsample_log_prob
 
-from torchrl_rave.modules.tensor_call import PlannedCalls
+from torchrl_rave.modules.tensor_call import PlannedCalls, TensorCall
 
 __all__ = ["TargetNetworks"]
 
@@ -190,12 +190,9 @@ class TargetNetworks:
         planned = self.calls.gaussian_actor(actor)
         with set_exploration_type(ExplorationType.RANDOM):
             if planned is not None:  # the MLP as tensor calls, the distribution as built
-                call, extractor, head = planned
                 flat = obs.reshape(-1, obs.shape[-1])
-                loc, scale = extractor(call(params, {keys.observation: flat})["loc_scale"])
-                names = actor.module[0].out_keys
-                dist = head.get_dist(TensorDict(dict(zip(names, (loc, scale), strict=True)),
-                                                batch_size=flat.shape[:-1]))  # fmt: skip
+                inputs = {keys.observation: flat}
+                dist = TensorCall.gaussian_dist(planned, actor, params, inputs)
                 action, log_prob = compute_rsample_log_prob(dist)
                 return action.reshape(*obs.shape[:-1], -1), log_prob.reshape(obs.shape[:-1])
             td = TensorDict({keys.observation: obs}, batch_size=obs.shape[:-1])

@@ -337,7 +337,6 @@ class SeedGroup:
                 raise ValueError("a SAC seed group needs lr_alpha")
             self.log_alpha = _fuse([x.log_alpha for x in losses], 0, True, self._members)
             self.alpha_optimizer = torch.optim.Adam([self.log_alpha], lr=lr_alpha, fused=True)
-            _, self._extractor, self._dist = _sac_actor_plan(losses[0])
 
     # ----------------------------------------------------------------- set-up
     def _estimator_setup(self, losses) -> None:
@@ -374,7 +373,8 @@ class SeedGroup:
                 "TanhModule for the actor); this learner's networks cannot be planned"
             )
         if self.sac:
-            actor_plan = _sac_actor_plan(losses[0])[0]
+            self._sac_plan, self._sac_actor = _sac_actor_plan(losses[0]), losses[0].actor_network
+            actor_plan = self._sac_plan[0]
         elif actor_plan.steps[-1][0] != "tanh":
             raise ValueError("a seed group's actor ends in a TanhModule onto the action box")
         if list(actor_plan.steps[0][1]) != ["observation"]:
@@ -508,10 +508,10 @@ class SeedGroup:
         ``[S, B]``, drawn as the recipe's SAC actor draws them: its own extractor and
         distribution module, the pre-tanh value ``loc + eps * scale`` scored as
         ``TanhNormal.rsample_and_log_prob`` scores it (``eps``: ``policy_noise_draw``)."""
-        loc, scale = self._extractor(
-            self.actor_call(self.actor, {"observation": obs}, seeds=True)["loc_scale"]
+        inputs = {"observation": obs}
+        dist = TensorCall.gaussian_dist(
+            self._sac_plan, self._sac_actor, self.actor, inputs, seeds=True
         )
-        dist = self._dist.get_dist(TensorDict(loc=loc, scale=scale, batch_size=loc.shape[:-1]))
         base = dist.root_dist
         preimage = base.loc + self._noise(base.loc) * base.scale
         transform = dist.transforms[0]
