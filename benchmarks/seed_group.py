@@ -403,8 +403,10 @@ def library_td3_case(S: int, device) -> tuple[Case, float]:
     return Case(f"td3 library loss x{S}", step, data), difference
 
 
-def _paired(a: Case, b: Case, device, seconds: float) -> tuple[list[float], list[float]]:
-    """Seconds per update of ``a`` and ``b`` in paired rounds (the order alternating)."""
+def _paired(a: Case, b: Case, device, seconds: float) -> dict:
+    """``a`` against ``b`` in paired rounds (the order alternating, so that the machine's
+    drift cancels in each round's ratio): the rounds, each one's median milliseconds per
+    update, and the median of the rounds' time ratios ``a / b`` with its quartiles."""
     for case in (a, b):  # warm-up: optimiser moments, allocator
         for _ in range(3):
             case.step()
@@ -420,7 +422,19 @@ def _paired(a: Case, b: Case, device, seconds: float) -> tuple[list[float], list
             sync(device)
             times[i].append((time.perf_counter() - start) / 3)
         order.reverse()
-    return times
+    ratios = [x / y for x, y in zip(*times, strict=True)]
+    q1, median, q3 = statistics.quantiles(ratios, n=4)
+    return {
+        "rounds": len(ratios),
+        "ms": [statistics.median(t) * 1e3 for t in times],
+        "ratio": median,
+        "quartiles": [q1, q3],
+    }
+
+
+def _ratio_text(paired: dict) -> str:
+    q1, q3 = paired["quartiles"]
+    return f"paired ratio {paired['ratio']:.3f} (quartiles {q1:.3f}-{q3:.3f}, {paired['rounds']} rounds)"
 
 
 def library_losses(seeds, threads, device, seconds: float) -> dict:
@@ -430,26 +444,23 @@ def library_losses(seeds, threads, device, seconds: float) -> dict:
     for n_threads, algorithm, S in _settings(["td3"], seeds, threads, device):
         group, _ = group_case(algorithm, S, device)
         library, difference = library_td3_case(S, device)
-        ours, theirs = _paired(group, library, device, seconds)
-        ratios = [b / a for a, b in zip(ours, theirs, strict=True)]
-        q1, median, q3 = statistics.quantiles(ratios, n=4)
+        paired = _paired(library, group, device, seconds)
         row = {
             "algorithm": algorithm,
             "threads": n_threads,
             "seeds": S,
-            "rounds": len(ratios),
-            "group_ms": statistics.median(ours) * 1e3,
-            "library_loss_ms": statistics.median(theirs) * 1e3,
-            "library_over_group": median,
-            "library_over_group_quartiles": [q1, q3],
+            "rounds": paired["rounds"],
+            "group_ms": paired["ms"][1],
+            "library_loss_ms": paired["ms"][0],
+            "library_over_group": paired["ratio"],
+            "library_over_group_quartiles": paired["quartiles"],
             "max_abs_difference": difference,
         }
         rows.append(row)
         print(
             f"{algorithm:5s} threads={n_threads} S={S}: group {row['group_ms']:.1f} ms, "
             f"TD3Loss over seed-batched networks {row['library_loss_ms']:.1f} ms per update; "
-            f"paired ratio {median:.3f} (quartiles {q1:.3f}-{q3:.3f}, {len(ratios)} rounds); "
-            f"actor losses differ by at most {difference:.1e}",
+            f"{_ratio_text(paired)}; actor losses differ by at most {difference:.1e}",
             flush=True,
         )
     return {"rows": rows}
@@ -472,25 +483,21 @@ def against(path: Path, algorithms, seeds, threads, device, seconds: float) -> d
         finally:
             agent_module.SeedGroup = current
         assert type(built) is baseline.SeedGroup
-        this, that = _paired(mine, theirs, device, seconds)
-        times = {"this": this, "baseline": that}
-        ratios = [a / b for a, b in zip(this, that, strict=True)]
-        q1, median, q3 = statistics.quantiles(ratios, n=4)
+        paired = _paired(mine, theirs, device, seconds)
         row = {
             "algorithm": algorithm,
             "threads": n_threads,
             "seeds": S,
-            "rounds": len(ratios),
-            "this_ms": statistics.median(times["this"]) * 1e3,
-            "baseline_ms": statistics.median(times["baseline"]) * 1e3,
-            "time_ratio": median,
-            "time_ratio_quartiles": [q1, q3],
+            "rounds": paired["rounds"],
+            "this_ms": paired["ms"][0],
+            "baseline_ms": paired["ms"][1],
+            "time_ratio": paired["ratio"],
+            "time_ratio_quartiles": paired["quartiles"],
         }
         rows.append(row)
         print(
             f"{algorithm:5s} threads={n_threads} S={S}: this {row['this_ms']:.1f} ms, "
-            f"baseline {row['baseline_ms']:.1f} ms per group update; paired ratio "
-            f"{median:.3f} (quartiles {q1:.3f}-{q3:.3f}, {len(ratios)} rounds)",
+            f"baseline {row['baseline_ms']:.1f} ms per group update; {_ratio_text(paired)}",
             flush=True,
         )
     return {"baseline": str(path), "rows": rows}
