@@ -61,6 +61,7 @@ import torch
 from tensordict import TensorDict, TensorDictBase
 from torch.distributions.utils import _sum_rightmost
 from torchrl.objectives import SACLoss, TD3Loss
+from torchrl.objectives.value import TD0Estimator
 from torchrl.objectives.value.functional import td0_return_estimate
 
 from torchrl_rave.modules.tensor_call import TensorCall, _leaf
@@ -347,8 +348,6 @@ class SeedGroup:
         _same("gamma", [float(x.gamma) for x in estimators])
         self.gamma = e.gamma.detach().clone()  # the estimator's own float32 number
         if not self.expanding:
-            from torchrl.objectives.value import TD0Estimator
-
             if not isinstance(e, TD0Estimator) or e.average_rewards:
                 raise ValueError(
                     f"a seed group computes TD(0) or value-expansion targets, got {kinds.__name__}"
