@@ -4,6 +4,7 @@
     python benchmarks/collection_throughput.py --env InvertedPendulum-v5 --workers 1 2
     python benchmarks/collection_throughput.py --backends process     # without Ray
     python benchmarks/collection_throughput.py --record-cost          # the episode record
+    python benchmarks/collection_throughput.py --vector-env 5         # one batched env of 5
 
 It builds the recipe's env and exploration policy (an untrained RAVE actor with its
 Gaussian noise) from ``recipes/config.yaml`` and times ``collector.backend=direct``, then
@@ -18,6 +19,13 @@ The ``direct`` row's env keeps the episode in progress for the checkpoints, as a
 run's does (:class:`~torchrl_rave.envs.EpisodeReplay`). ``--record-cost`` times only the
 direct backend, with and without that record, rounds interleaved, and writes
 ``episode_record_cost.json``.
+
+``--vector-env S`` asks whether one batched env would step a seed group's S envs for less:
+env steps per second (random actions from the spec, ``step_and_maybe_reset``, no policy)
+of S TorchRL ``GymEnv`` stepped one after the other, as a group's collectors step them,
+against one TorchRL ``GymWrapper`` over gymnasium's ``SyncVectorEnv`` of S (same-step
+autoreset, the mode ``GymWrapper`` takes), rounds interleaved, the best of ``--repeats``;
+written to ``vector_env_cost.json``.
 """
 
 from __future__ import annotations
@@ -76,6 +84,53 @@ def measure(
         collector.shutdown()
 
 
+def vector_env_cost(env_name: str, num_envs: int, steps: int, repeats: int) -> dict:
+    """Env steps per second (every env's steps counted) of ``num_envs`` ``GymEnv`` stepped
+    in turn and of one ``GymWrapper`` over a ``SyncVectorEnv`` of them; the best of
+    ``repeats`` interleaved rounds of ``steps`` steps each."""
+    import gymnasium as gym
+    from torchrl.envs import GymEnv, GymWrapper
+
+    singles = [GymEnv(env_name) for _ in range(num_envs)]
+    vector = GymWrapper(
+        gym.vector.SyncVectorEnv(
+            [lambda: gym.make(env_name) for _ in range(num_envs)],
+            autoreset_mode=gym.vector.AutoresetMode.SAME_STEP,
+        )
+    )
+
+    def in_turn() -> float:
+        tds = [e.reset() for e in singles]
+        start = time.perf_counter()
+        for _ in range(steps):
+            for i, e in enumerate(singles):
+                tds[i]["action"] = e.action_spec.rand()
+                _, tds[i] = e.step_and_maybe_reset(tds[i])
+        return steps * num_envs / (time.perf_counter() - start)
+
+    def batched() -> float:
+        td = vector.reset()
+        start = time.perf_counter()
+        for _ in range(steps):
+            td["action"] = vector.action_spec.rand()
+            _, td = vector.step_and_maybe_reset(td)
+        return steps * num_envs / (time.perf_counter() - start)
+
+    best = {"in_turn": 0.0, "vector": 0.0}
+    for _ in range(repeats):
+        best["in_turn"] = max(best["in_turn"], in_turn())
+        best["vector"] = max(best["vector"], batched())
+    for e in [*singles, vector]:
+        e.close()
+    return {
+        "num_envs": num_envs,
+        "steps": steps,
+        "in_turn_steps_per_s": best["in_turn"],
+        "vector_steps_per_s": best["vector"],
+        "vector_over_in_turn": best["vector"] / best["in_turn"],
+    }
+
+
 def main(argv=None) -> dict:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--env", default="Hopper-v5")
@@ -94,9 +149,30 @@ def main(argv=None) -> dict:
         action="store_true",
         help="the direct backend with and without the episode record, alone",
     )
+    parser.add_argument(
+        "--vector-env",
+        type=count(),
+        default=None,
+        metavar="S",
+        help="instead: S envs stepped in turn against one GymWrapper over a SyncVectorEnv of S",
+    )
+    parser.add_argument(
+        "--steps", type=count(), default=1000, help="with --vector-env: steps per round"
+    )
     parser.add_argument("--json", default=None, help="default: benchmarks/<what was timed>.json")
     args = parser.parse_args(argv)
     torch.set_num_threads(1)  # the learner's share; workers are single-threaded processes
+    if args.vector_env is not None:
+        row = vector_env_cost(args.env, args.vector_env, args.steps, args.repeats)
+        print(
+            f"{args.env}, {row['num_envs']} envs: {row['in_turn_steps_per_s']:.0f} env steps/s "
+            f"stepped in turn, {row['vector_steps_per_s']:.0f} as one SyncVectorEnv "
+            f"(x{row['vector_over_in_turn']:.2f}), best of {args.repeats}"
+        )
+        record = {**provenance("collection_throughput.py", argv), "env": args.env, **row}
+        out = Path(args.json or ROOT / "benchmarks" / "vector_env_cost.json")
+        out.write_text(json.dumps(record, indent=2))
+        return row
     # (name, backend, workers, whether the learner's env keeps the episode, as training's
     # direct env does; workers' envs never do)
     runs = [("direct", "direct", 1, True)]

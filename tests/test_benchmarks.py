@@ -426,3 +426,21 @@ def test_seed_group_against_times_the_group_of_another_file(tmp_path, capsys):
     with pytest.raises(SystemExit):
         seed_group.main(["--against", str(tmp_path / "none.py"), "--out", str(out)])
     assert "no such file" in capsys.readouterr().err
+
+
+def test_vector_env_cost_times_one_batched_env_against_envs_in_turn(tmp_path):
+    """benchmarks/collection_throughput.py --vector-env: S GymEnv stepped in turn and one
+    GymWrapper over a SyncVectorEnv of S, each rate counting every env's steps."""
+    import collection_throughput
+
+    out = tmp_path / "vector.json"
+    row = collection_throughput.main(
+        ["--env", "InvertedPendulum-v5", "--vector-env", "2", "--steps", "30", "--repeats", "1",
+         "--json", str(out)]
+    )  # fmt: skip
+    saved = json.loads(out.read_text())
+    assert saved["num_envs"] == 2 and saved["steps"] == 30 and saved["env"] == "InvertedPendulum-v5"
+    assert row["in_turn_steps_per_s"] > 0 and row["vector_steps_per_s"] > 0
+    assert row["vector_over_in_turn"] == pytest.approx(
+        row["vector_steps_per_s"] / row["in_turn_steps_per_s"]
+    )
