@@ -433,3 +433,80 @@ class TestLayouts:
             VF.imagined_rollout(torch.zeros(3, 1), lambda s: s, lambda s, a, m: s, 2, -1)
         with pytest.raises(ValueError, match="num_members=0 must be an integer >= 1"):
             VF.imagined_rollout(torch.zeros(3, 1), lambda s: s, lambda s, a, m: s, 0, 2)
+
+
+def test_clipped_double_q_target_is_the_naive_loop_per_seed_and_row():
+    """The one-step target of K critics, plain and soft (a temperature per seed), against
+    a loop over seeds and rows in float64."""
+    g = torch.Generator().manual_seed(3)
+    S, K, B, gamma = 3, 2, 5, 0.9
+    next_q = torch.randn(S, K, B, generator=g, dtype=torch.float64)
+    reward = torch.randn(S, B, generator=g, dtype=torch.float64)
+    terminated = torch.rand(S, B, generator=g) < 0.3
+    log_prob = torch.randn(S, B, generator=g, dtype=torch.float64)
+    temperature = torch.tensor([0.1, 0.5, 2.0], dtype=torch.float64)
+    plain = VF.clipped_double_q_target(next_q, reward, terminated, gamma)
+    soft = VF.clipped_double_q_target(next_q, reward, terminated, gamma,
+                                      next_log_prob=log_prob, temperature=temperature.view(S, 1))  # fmt: skip
+    for s in range(S):
+        for b in range(B):
+            keep = 0.0 if terminated[s, b] else 1.0
+            qs = [float(next_q[s, k, b]) for k in range(K)]
+            bonus = float(temperature[s]) * float(log_prob[s, b])
+            assert float(plain[s, b]) == pytest.approx(float(reward[s, b]) + gamma * keep * min(qs))
+            expected = float(reward[s, b]) + gamma * keep * min(q - bonus for q in qs)
+            assert float(soft[s, b]) == pytest.approx(expected)
+    with pytest.raises(ValueError, match="come together"):
+        VF.clipped_double_q_target(next_q, reward, terminated, gamma, next_log_prob=log_prob)
+
+
+def test_td3_target_is_td3losss_target():
+    """Target smoothing and the clipped double-Q target give TD3Loss's own target, with
+    its smoothing noise replayed."""
+    from tensordict import TensorDict
+    from tensordict.nn import TensorDictModule, TensorDictSequential
+    from torchrl.data import Bounded
+    from torchrl.modules import MLP, TanhModule, ValueOperator
+    from torchrl.objectives import TD3Loss
+
+    torch.manual_seed(0)
+    spec = Bounded(-1.0, 1.0, shape=(2,))
+    actor = TensorDictSequential(
+        TensorDictModule(MLP(in_features=3, out_features=2, num_cells=[8]),
+                         in_keys=["observation"], out_keys=["param"]),
+        TanhModule(in_keys=["param"], out_keys=["action"], spec=spec))  # fmt: skip
+    critic = ValueOperator(MLP(in_features=5, out_features=1, num_cells=[8]),
+                           in_keys=["observation", "action"])  # fmt: skip
+    loss = TD3Loss(actor, critic, action_spec=spec, num_qvalue_nets=2, policy_noise=0.3,
+                   noise_clip=0.4, loss_function="l2")  # fmt: skip
+    loss.make_value_estimator(gamma=0.95)
+    B = 7
+    g = torch.Generator().manual_seed(1)
+    terminated = torch.rand(B, 1, generator=g) < 0.3
+    td = TensorDict({"observation": torch.randn(B, 3, generator=g),
+                     "action": torch.rand(B, 2, generator=g) * 2 - 1,
+                     ("next", "observation"): torch.randn(B, 3, generator=g) * 3,
+                     ("next", "reward"): torch.randn(B, 1, generator=g),
+                     ("next", "done"): terminated.clone(),
+                     ("next", "terminated"): terminated}, [B])  # fmt: skip
+    noise = torch.randn(B, 2, generator=g) * 3  # large: the clip and the box both act
+    real = torch.randn_like
+    torch.randn_like = lambda x: noise.clone()
+    try:
+        _, meta = loss.value_loss(td)
+    finally:
+        torch.randn_like = real
+    with torch.no_grad():
+        nxt = td["next", "observation"]
+        with loss.target_actor_network_params.to_module(actor):
+            next_action = actor(TensorDict({"observation": nxt}, [B]))["action"]
+        next_action = VF.smoothed_target_action(next_action, noise, scale=0.3, clip=0.4,
+                                                low=-1.0, high=1.0)  # fmt: skip
+        qs = []
+        for k in range(2):
+            with loss.target_qvalue_network_params[k].to_module(critic):
+                inputs = TensorDict({"observation": nxt, "action": next_action}, [B])
+                qs.append(critic(inputs)["state_action_value"].squeeze(-1))
+        ours = VF.clipped_double_q_target(torch.stack(qs), td["next", "reward"].squeeze(-1),
+                                          terminated.squeeze(-1), 0.95)  # fmt: skip
+    torch.testing.assert_close(ours, meta["target_value"].squeeze(-1))

@@ -1,4 +1,5 @@
-"""Value-expansion math as pure tensor functions (MVE, STEVE, RAVE).
+"""Value-expansion math as pure tensor functions (MVE, STEVE, RAVE), and the one-step
+targets of the model-free learners they are compared with.
 
 Notation follows the paper (Zhou et al., "Efficient and Robust Reinforcement Learning
 with Uncertainty-based Value Expansion"): transition members ``i`` (with their
@@ -25,6 +26,7 @@ from collections.abc import Callable
 from typing import Literal
 
 import torch
+from torchrl.objectives.value.functional import td0_return_estimate
 
 from torchrl_rave._checks import NON_NEGATIVE, POSITIVE
 
@@ -39,6 +41,8 @@ __all__ = [
     "expansion_target",
     "value_expansion_target",
     "adaptive_alpha",
+    "smoothed_target_action",
+    "clipped_double_q_target",
 ]
 
 
@@ -479,3 +483,70 @@ def adaptive_alpha(
         tensor([1.5000, 0.7500, 0.0000])
     """
     return (alpha * (1.0 - prediction_error / alpha_error_scale)).clamp_min(0.0)
+
+
+def smoothed_target_action(
+    action: torch.Tensor,
+    noise: torch.Tensor,
+    *,
+    scale: float,
+    clip: float,
+    low: torch.Tensor | float,
+    high: torch.Tensor | float,
+) -> torch.Tensor:
+    """TD3's target policy smoothing: ``clip(a + clip(scale * eps, -c, c), low, high)``, with
+    the operations in ``TD3Loss``'s order.
+
+    Args:
+        action (Tensor): the target policy's action ``[*S, *B, A]``.
+        noise (Tensor): standard normal draws shaped as ``action``.
+        scale (float): the noise's standard deviation (``policy_noise``).
+        clip (float): the bound of the scaled noise (``noise_clip``).
+        low, high (Tensor or float): the action box.
+
+    Examples:
+        >>> smoothed_target_action(torch.tensor([0.9, 0.0]), torch.tensor([4.0, -1.0]),
+        ...                        scale=0.2, clip=0.5, low=-1.0, high=1.0)
+        tensor([ 1.0000, -0.2000])
+    """
+    return (action + (noise * scale).clamp(-clip, clip)).clamp(low, high)
+
+
+def clipped_double_q_target(
+    next_q: torch.Tensor,
+    reward: torch.Tensor,
+    terminated: torch.Tensor,
+    gamma: torch.Tensor | float,
+    *,
+    next_log_prob: torch.Tensor | None = None,
+    temperature: torch.Tensor | float | None = None,
+) -> torch.Tensor:
+    """The TD(0) target of ``K`` target critics, ``r + gamma (1 - d) min_k Q'_k(s', a')``
+    (TD3's and DDPG-with-K-critics'), or with ``temperature`` SAC's soft one,
+    ``r + gamma (1 - d) min_k (Q'_k(s', a') - temperature log pi(a' | s'))``.
+
+    Args:
+        next_q (Tensor): the target critics' values at the next state and action,
+            ``[*S, K, B]`` (any leading seed dimensions, then the critics, then the rows).
+        reward (Tensor): ``[*S, B]``.
+        terminated (Tensor): ``[*S, B]`` (bool or float); a terminated row does not
+            bootstrap.
+        gamma (float or Tensor): the discount.
+        next_log_prob (Tensor, optional): ``log pi(a' | s')`` ``[*S, B]`` of a stochastic
+            policy's next action; with ``temperature``.
+        temperature (float or Tensor, optional): the entropy temperature, a number or a
+            tensor that broadcasts against ``[*S, B]`` (one per seed: ``[S, 1]``).
+
+    Returns:
+        The target ``[*S, B]``.
+
+    Examples:
+        >>> next_q = torch.tensor([[1.0, 2.0], [3.0, 0.5]])  # K = 2 critics, B = 2 rows
+        >>> clipped_double_q_target(next_q, torch.zeros(2), torch.tensor([False, True]), 0.5)
+        tensor([0.5000, 0.0000])
+    """
+    if (next_log_prob is None) != (temperature is None):
+        raise ValueError("next_log_prob and temperature come together (SAC's soft target)")
+    if next_log_prob is not None:
+        next_q = next_q - (temperature * next_log_prob).unsqueeze(-2)
+    return td0_return_estimate(gamma, next_q.min(-2)[0], reward, terminated)

@@ -62,7 +62,6 @@ from tensordict import TensorDict, TensorDictBase
 from torch.distributions.utils import _sum_rightmost
 from torchrl.objectives import SACLoss, TD3Loss
 from torchrl.objectives.value import TD0Estimator
-from torchrl.objectives.value.functional import td0_return_estimate
 
 from torchrl_rave.modules.tensor_call import TensorCall, _leaf
 from torchrl_rave.objectives import functional as VF
@@ -457,12 +456,12 @@ class SeedGroup:
         if not self.expanding:
             next_action = self._policy(self.target_actor, nxt)
             if self.td3:  # target policy smoothing, drawn as TD3Loss draws it
-                noise = (self._noise(action) * self.policy_noise).clamp(
-                    -self.noise_clip, self.noise_clip
-                )
-                next_action = (next_action + noise).clamp(self.min_action, self.max_action)
+                next_action = VF.smoothed_target_action(
+                    next_action, self._noise(action), scale=self.policy_noise,
+                    clip=self.noise_clip, low=self.min_action, high=self.max_action,
+                )  # fmt: skip
             next_q = self._q(self.target_critic, nxt, next_action)
-            return td0_return_estimate(self.gamma, next_q.min(1)[0], reward, terminated), {}
+            return VF.clipped_double_q_target(next_q, reward, terminated, self.gamma), {}
         return self._expansion_target(obs, action, nxt, reward, terminated)
 
     def _expansion_target(self, obs, action, nxt, reward, terminated, temperature=None):
@@ -538,8 +537,10 @@ class SeedGroup:
             else:
                 next_action, next_log_prob = self._sac_action(nxt)
                 next_q = self._q(self.target_critic, nxt, next_action)  # [S, K, B]
-                next_value = (next_q - alpha.view(-1, 1, 1) * next_log_prob.unsqueeze(1)).min(1)[0]
-                target = td0_return_estimate(self.gamma, next_value, reward, terminated)
+                target = VF.clipped_double_q_target(
+                    next_q, reward, terminated, self.gamma,
+                    next_log_prob=next_log_prob, temperature=alpha.view(-1, 1),
+                )  # fmt: skip
         current = self._q(self.critic, obs, action)
         loss_value = (current - target.unsqueeze(1)).pow(2).sum(1).mean(-1)
         if self.critic_first:
