@@ -75,6 +75,7 @@ from update_throughput import (
     sync,
 )
 
+from torchrl_rave.modules import ensemble_affine
 from torchrl_rave.objectives import ForeachSoftUpdate
 from torchrl_rave.recipe.agent import make_seed_group
 from torchrl_rave.recipe.group import GROUP_ALGORITHMS
@@ -114,6 +115,14 @@ def separate_case(algorithm: str, S: int, device) -> Case:
     return Case(f"{algorithm} separate x{S}", step, data)
 
 
+def group_batches(B: int, S: int, device) -> list[TensorDict]:
+    """:func:`update_throughput.batches` of ``S x B`` rows as ``[S, B]`` group batches."""
+    return [
+        TensorDict.maybe_dense_stack(list(b.split(B))) if S > 1 else b.unsqueeze(0)
+        for b in batches(B * S, device)
+    ]
+
+
 def group_case(algorithm: str, S: int, device) -> tuple[Case, SeedGroup]:
     cfg, agents = learners(algorithm, S, device)
     model_based = agents[0].world_model is not None
@@ -122,11 +131,7 @@ def group_case(algorithm: str, S: int, device) -> tuple[Case, SeedGroup]:
         torch.manual_seed(i)
         streams.capture(i)
     group = make_seed_group(cfg, agents, streams=streams)
-    B = cfg.replay_buffer.batch_size
-    data = [
-        TensorDict.maybe_dense_stack(list(b.split(B))) if S > 1 else b.unsqueeze(0)
-        for b in batches(B * S, device)
-    ]
+    data = group_batches(cfg.replay_buffer.batch_size, S, device)
 
     def step(batch):
         if model_based:
@@ -327,9 +332,8 @@ class _SeedLinear(torch.nn.Module):
         self.bias = torch.nn.Parameter(layer.bias.detach().expand(S, -1).clone())
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
-        S, width = self.weight.shape[0], x.shape[-1]
-        flat = x.reshape(S, -1, width)
-        y = torch.baddbmm(self.bias.unsqueeze(1), flat, self.weight.transpose(1, 2))
+        flat = x.reshape(self.weight.shape[0], -1, x.shape[-1])
+        y = ensemble_affine(flat, self.weight.transpose(-1, -2), self.bias.unsqueeze(-2))
         return y.view(*x.shape[:-1], y.shape[-1])
 
 
@@ -373,9 +377,7 @@ def library_td3_case(S: int, device) -> tuple[Case, float]:
     actor_opt = torch.optim.Adam(leaves["actor_network"], lr=cfg.optim.lr_actor, fused=True)
     critic_opt = torch.optim.Adam(leaves["qvalue_network"], lr=cfg.optim.lr_critic, fused=True)
     updater = ForeachSoftUpdate(loss, tau=cfg.optim.tau)
-    B = cfg.replay_buffer.batch_size
-    data = [TensorDict.maybe_dense_stack(list(b.split(B))) if S > 1 else b.unsqueeze(0)
-            for b in batches(B * S, device)]  # fmt: skip
+    data = group_batches(cfg.replay_buffer.batch_size, S, device)
     with torch.no_grad():
         mine = loss.actor_loss(data[0])[0].mean(-1)
         theirs = torch.stack([x.actor_loss(data[0][s])[0] for s, x in enumerate(losses)])
