@@ -497,3 +497,25 @@ def test_critic_first_actor_learns_through_the_stepped_critics(algorithm):
     gap = max(float((g - o).abs().max()) for g, o in zip(got, through_old, strict=True))
     scale = max(float(o.abs().max()) for o in through_old)
     assert gap > 1e-2 * scale
+
+
+@pytest.mark.parametrize("algorithm", ["sac", "rave_sac"])
+def test_a_sac_groups_value_target_is_each_sacloss_target(algorithm, monkeypatch):
+    """``SeedGroup.value_target`` of a SAC group (without an update) gives each seed the
+    target its own ``SACLoss`` computes on its rows, from the same draws: the soft TD(0)
+    target, and RAVE's soft value-expansion target."""
+    cfg, _ = learner(algorithm, 0)
+    singles = [learner(algorithm, s)[1] for s in range(2)]
+    rec = Recorder()
+    group = make_group([learner(algorithm, s)[1] for s in range(2)], cfg, draw=rec.draw,
+                       bootstrap_indices=rec.bootstrap, policy_noise_draw=rec.policy_noise)  # fmt: skip
+    d = batch(2, seed=3)
+    target, diagnostics = group.value_target(d)
+    assert target.shape == (2, B) and bool(diagnostics) == (algorithm == "rave_sac")
+    monkeypatch.undo()
+    for s, agent in enumerate(singles):
+        replay(monkeypatch, agent, rec, s)
+        with torch.no_grad():
+            single = agent.loss._compute_target_v2(d[s].clone())
+        close(target[s], single.squeeze(-1), f"seed {s} target")
+        monkeypatch.undo()

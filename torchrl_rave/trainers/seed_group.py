@@ -451,8 +451,24 @@ class SeedGroup:
     @torch.no_grad()
     def value_target(self, batch: TensorDictBase) -> tuple[Tensor, dict[str, Tensor]]:
         """Each seed's critic target ``[S, B]`` and, for value expansion, its diagnostics
-        (per sample, under the estimator's key names)."""
+        (per sample, under the estimator's key names). SAC's is the soft target, its next
+        actions drawn from the current actor as SACLoss draws them."""
         obs, action, nxt, reward, terminated = self._read(batch)
+        if self.sac:
+            alpha = self.log_alpha.detach().exp()  # [S]
+            if self.expanding:
+                # SACLoss draws its own next action before it asks the estimator: the same
+                # draw, unused, keeps each seed's random stream where its learner's is
+                self._noise(action)
+                return self._expansion_target(
+                    obs, action, nxt, reward, terminated, temperature=alpha
+                )
+            next_action, next_log_prob = self._sac_action(nxt)
+            next_q = self._q(self.target_critic, nxt, next_action)  # [S, K, B]
+            return VF.clipped_double_q_target(
+                next_q, reward, terminated, self.gamma,
+                next_log_prob=next_log_prob, temperature=alpha.view(-1, 1),
+            ), {}  # fmt: skip
         if not self.expanding:
             next_action = self._policy(self.target_actor, nxt)
             if self.td3:  # target policy smoothing, drawn as TD3Loss draws it
@@ -519,62 +535,26 @@ class SeedGroup:
         )
         return action, log_prob
 
-    def _update_sac(self, batch: TensorDictBase) -> TensorDict:
-        """SACLoss (v2) for every seed: the critics' target from the current actor's next
-        action less ``alpha log pi`` under the target critics' minimum, the actor's
-        ``alpha log pi - min_k Q_k`` and the temperature's loss, in SACLoss's order."""
-        obs, action, nxt, reward, terminated = self._read(batch)
+    def _actor_losses(self, obs: Tensor, out: dict) -> tuple[list[Tensor], list]:
+        """Each seed's actor loss (SAC's: and its temperature's) through the current
+        critics, with the optimisers they step; their outputs go into ``out``."""
+        if not self.sac:
+            q_actor = self._q(self.critic, obs, self._policy(self.actor, obs), detach=True)
+            # the K critics' mean (EnsembleDDPGLoss), the first critic's value (TD3Loss)
+            loss_actor = (-(q_actor[:, 0] if self.td3 else q_actor.mean(1))).mean(-1)  # [S]
+            out.update(loss_actor=loss_actor.detach(), state_action_value_actor=q_actor.detach())
+            return [loss_actor], [self.actor_optimizer]
+        # SACLoss (v2): alpha log pi - min_k Q_k, and the temperature's loss
         alpha = self.log_alpha.detach().exp()  # [S]
-        diagnostics = {}
-        with torch.no_grad():
-            if self.expanding:
-                # SACLoss draws its own next action before it asks the estimator: the same
-                # draw, unused, keeps each seed's random stream where its learner's is
-                self._noise(action)
-                target, diagnostics = self._expansion_target(
-                    obs, action, nxt, reward, terminated, temperature=alpha
-                )
-            else:
-                next_action, next_log_prob = self._sac_action(nxt)
-                next_q = self._q(self.target_critic, nxt, next_action)  # [S, K, B]
-                target = VF.clipped_double_q_target(
-                    next_q, reward, terminated, self.gamma,
-                    next_log_prob=next_log_prob, temperature=alpha.view(-1, 1),
-                )  # fmt: skip
-        current = self._q(self.critic, obs, action)
-        loss_value = (current - target.unsqueeze(1)).pow(2).sum(1).mean(-1)
-        if self.critic_first:
-            _step(self.critic_optimizer, loss_value.sum())
         new_action, log_prob = self._sac_action(obs)
         q_actor = self._q(self.critic, obs, new_action, detach=True)
         loss_actor = (alpha.view(-1, 1) * log_prob - q_actor.min(1)[0]).mean(-1)
         loss_alpha = (-self.log_alpha.view(-1, 1) * (log_prob.detach() + self.target_entropy)).mean(
             -1
         )
-        if self.critic_first:
-            _step((self.actor_optimizer, self.alpha_optimizer), loss_actor.sum() + loss_alpha.sum())
-        else:
-            for opt in self.optimizers().values():
-                opt.zero_grad()
-            (loss_value.sum() + loss_actor.sum() + loss_alpha.sum()).backward()
-            self.critic_optimizer.step()
-            self.actor_optimizer.step()
-            self.alpha_optimizer.step()
-        with torch.no_grad():
-            torch._foreach_lerp_(self._lerp[0], self._lerp[1], self.tau)
-        return TensorDict(
-            {
-                "loss_value": loss_value.detach(),
-                "loss_actor": loss_actor.detach(),
-                "loss_alpha": loss_alpha.detach(),
-                "alpha": alpha,
-                "entropy": -log_prob.detach().mean(-1),
-                "target_value": target,
-                "pred_value": current.detach(),
-                **diagnostics,
-            },
-            batch_size=[self.num_seeds],
-        )
+        out.update(loss_actor=loss_actor.detach(), loss_alpha=loss_alpha.detach(), alpha=alpha,
+                   entropy=-log_prob.detach().mean(-1))  # fmt: skip
+        return [loss_actor, loss_alpha], [self.actor_optimizer, self.alpha_optimizer]
 
     def update(self, batch: TensorDictBase, step_actor: bool = True) -> TensorDict:
         """One agent update of every seed on its own rows of ``batch`` (``[S, B]``):
@@ -582,15 +562,14 @@ class SeedGroup:
         :func:`~torchrl_rave.recipe.update.agent_update` (or, with ``critic_first``,
         :func:`~torchrl_rave.recipe.update.critic_first_update`) does for one learner. Returns
         per-seed outputs (batch size ``[S]``): ``loss_value``, ``loss_actor``,
-        ``target_value`` ``[S, B]``, ``pred_value`` and ``state_action_value_actor``
-        ``[S, K, B]`` and the estimator's diagnostics. SAC steps its actor and temperature
-        at every update, and returns ``alpha`` and ``entropy`` besides. With
-        ``critic_first`` and without ``step_actor``, the actor's loss is not computed and
-        the two actor entries are absent."""
-        if self.sac:
-            return self._update_sac(batch)
+        ``target_value`` ``[S, B]``, ``pred_value`` ``[S, K, B]`` and the estimator's
+        diagnostics; ``state_action_value_actor`` ``[S, K, B]``, or, for SAC, ``loss_alpha``,
+        ``alpha`` and ``entropy``. SAC steps its actor and temperature at every update
+        (``step_actor`` is ignored). With ``critic_first`` and without ``step_actor``, the
+        actor's loss is not computed and its entries are absent."""
+        step_actor = step_actor or self.sac
         target, diagnostics = self.value_target(batch)
-        obs, action, _, _, _ = self._read(batch)
+        obs, action = self._read(batch)[:2]
         current = self._q(self.critic, obs, action)  # [S, K, B]
         loss_value = (current - target.unsqueeze(1)).pow(2).sum(1).mean(-1)  # [S]
         out = {"loss_value": loss_value.detach(), "target_value": target,
@@ -599,22 +578,19 @@ class SeedGroup:
             _step(self.critic_optimizer, loss_value.sum())
             if not step_actor:  # as critic_first_update: no actor loss without its step
                 return TensorDict(out, batch_size=[self.num_seeds])
-        q_actor = self._q(self.critic, obs, self._policy(self.actor, obs), detach=True)
-        # the K critics' mean (EnsembleDDPGLoss), the first critic's value (TD3Loss)
-        loss_actor = (-(q_actor[:, 0] if self.td3 else q_actor.mean(1))).mean(-1)  # [S]
-        if not self.critic_first:
-            self.actor_optimizer.zero_grad()
-            self.critic_optimizer.zero_grad()
-            (loss_value.sum() + loss_actor.sum()).backward()
+        losses, optimizers = self._actor_losses(obs, out)
+        if self.critic_first:
+            _step(optimizers, sum(loss.sum() for loss in losses))
+        else:  # one backward pass over every loss
+            for opt in (self.critic_optimizer, *optimizers):
+                opt.zero_grad()
+            (loss_value.sum() + sum(loss.sum() for loss in losses)).backward()
             self.critic_optimizer.step()
+            for opt in optimizers if step_actor else ():
+                opt.step()
         if step_actor:
-            if self.critic_first:
-                _step(self.actor_optimizer, loss_actor.sum())
-            else:
-                self.actor_optimizer.step()
             with torch.no_grad():
                 torch._foreach_lerp_(self._lerp[0], self._lerp[1], self.tau)
-        out.update(loss_actor=loss_actor.detach(), state_action_value_actor=q_actor.detach())
         return TensorDict(out, batch_size=[self.num_seeds])
 
     def _bootstrap_indices(self, B: int, device) -> Tensor:
