@@ -453,7 +453,9 @@ class SeedGroup:
         """Each seed's critic target ``[S, B]`` and, for value expansion, its diagnostics
         (per sample, under the estimator's key names). SAC's is the soft target, its next
         actions drawn from the current actor as SACLoss draws them."""
-        obs, action, nxt, reward, terminated = self._read(batch)
+        return self._target(*self._read(batch))
+
+    def _target(self, obs, action, nxt, reward, terminated):
         if self.sac:
             alpha = self.log_alpha.detach().exp()  # [S]
             if self.expanding:
@@ -568,8 +570,9 @@ class SeedGroup:
         (``step_actor`` is ignored). With ``critic_first`` and without ``step_actor``, the
         actor's loss is not computed and its entries are absent."""
         step_actor = step_actor or self.sac
-        target, diagnostics = self.value_target(batch)
-        obs, action = self._read(batch)[:2]
+        obs, action, nxt, reward, terminated = self._read(batch)
+        with torch.no_grad():
+            target, diagnostics = self._target(obs, action, nxt, reward, terminated)
         current = self._q(self.critic, obs, action)  # [S, K, B]
         loss_value = (current - target.unsqueeze(1)).pow(2).sum(1).mean(-1)  # [S]
         out = {"loss_value": loss_value.detach(), "target_value": target,
