@@ -22,7 +22,18 @@ import tempfile
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
-ALGORITHMS = ["ddpg", "mve", "steve", "rave", "rave_constant", "td3", "sac", "steve_sac", "rave_sac", "ppo"]
+ALGORITHMS = [
+    "ddpg",
+    "mve",
+    "steve",
+    "rave",
+    "rave_constant",
+    "td3",
+    "sac",
+    "steve_sac",
+    "rave_sac",
+    "ppo",
+]
 OVERRIDES = [
     "env.name=Hopper-v5",
     "env.seed=0",
