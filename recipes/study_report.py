@@ -259,7 +259,8 @@ def report(args) -> str:
     )  # fmt: skip
     lines += section(
         "What the finished cells cost: their own collection, update and evaluation time "
-        "(`time/*_s`, summed), in minutes per cell, and hours in all.",
+        "(`time/*_s`, summed), in minutes per cell, and hours in all. These are wall-clock "
+        "times: they include any time a run was paused or shared its core with another.",
         ["task", "algorithm", "cells", "min", "max", "hours"],
         cost,
     )
