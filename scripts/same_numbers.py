@@ -21,19 +21,9 @@ import sys
 import tempfile
 from pathlib import Path
 
+from torchrl_rave.recipe.config import ALGORITHMS
+
 ROOT = Path(__file__).resolve().parents[1]
-ALGORITHMS = [
-    "ddpg",
-    "mve",
-    "steve",
-    "rave",
-    "rave_constant",
-    "td3",
-    "sac",
-    "steve_sac",
-    "rave_sac",
-    "ppo",
-]
 OVERRIDES = [
     "env.name=Hopper-v5",
     "env.seed=0",
@@ -72,7 +62,7 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--out", type=Path, required=True, help="JSON of every run's metrics")
     parser.add_argument("--compare", type=Path, help="an earlier --out to compare against")
-    parser.add_argument("--algorithms", nargs="+", default=ALGORITHMS)
+    parser.add_argument("--algorithms", nargs="+", default=list(ALGORITHMS))
     parser.add_argument(
         "--rename",
         nargs="*",

@@ -11,6 +11,7 @@ from torchrl.data import Bounded, Composite, Unbounded
 import torchrl_rave.modules.world_model as world_model_module
 from torchrl_rave.modules import ensemble
 from torchrl_rave.recipe.agent import make_agent, make_seed_group
+from torchrl_rave.recipe.config import GROUP_ALGORITHMS as ALGORITHMS
 from torchrl_rave.recipe.update import make_agent_step
 from torchrl_rave.trainers import seed_group
 
@@ -24,17 +25,6 @@ SMALL = [
     "world_model.reward_cells=16",
     "world_model.termination_cells=16",
     "optim.tau=0.5",  # targets move visibly: a wrong soft update shows
-]
-ALGORITHMS = [
-    "ddpg",
-    "mve",
-    "steve",
-    "rave",
-    "rave_constant",
-    "td3",
-    "sac",
-    "steve_sac",
-    "rave_sac",
 ]
 
 

@@ -160,8 +160,7 @@ def _unknown_key(key: str) -> str:
 
 
 #: the algorithms a seed group trains (ppo runs one seed per process)
-GROUP_ALGORITHMS = ("ddpg", "mve", "steve", "rave", "rave_constant", "td3", "sac", "steve_sac",
-                    "rave_sac")  # fmt: skip
+GROUP_ALGORITHMS = tuple(name for name, algo in ALGORITHMS.items() if not algo.on_policy)
 
 
 def check_group(cfg: DictConfig) -> list[str]:
