@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import re
+import warnings
 from pathlib import Path
 
 import torch
@@ -19,10 +20,24 @@ def section_code(title: str) -> str:
     return blocks[0]
 
 
+def run_example(code: str, path: Path) -> dict:
+    """Runs an example as written; returns its names. Any warning it raises, other than a
+    DeprecationWarning from an import, fails the test: a user who copies the example
+    should see none (torchrl 0.14's collector warns when the env lacks the InitTracker
+    every TorchRL policy asks for)."""
+    scope: dict = {}
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        exec(compile(code, str(path), "exec"), scope)
+    raised = [f"{w.category.__name__}: {w.message}" for w in caught
+              if not issubclass(w.category, DeprecationWarning)]  # fmt: skip
+    assert not raised, raised
+    return scope
+
+
 def test_use_rave_in_your_own_loss(capsys):
     torch.manual_seed(0)
-    scope: dict = {}
-    exec(compile(section_code("Use RAVE in your own TorchRL loss"), str(README), "exec"), scope)
+    scope = run_example(section_code("Use RAVE in your own TorchRL loss"), README)
     loss, wm_trainer = scope["loss"], scope["wm_trainer"]
     assert type(loss.value_estimator).__name__ == "RAVEValueEstimator"
     weights = loss.value_estimator.diagnostics["rave_horizon_weights"]
@@ -70,8 +85,7 @@ def test_rave_inside_sacloss_as_the_docs_show_it(capsys):
     own actor and temperature losses, the estimator expands its soft target, and the
     diagnostics come out as scalars beside SAC's losses."""
     torch.manual_seed(0)
-    scope: dict = {}
-    exec(compile(sac_swap_code(), str(SWAP), "exec"), scope)
+    scope = run_example(sac_swap_code(), SWAP)
     loss, wm_trainer = scope["loss_module"], scope["wm_trainer"]
     estimator = loss.value_estimator
     assert type(loss).__name__ == "SACLoss"
