@@ -200,8 +200,8 @@ def test_a_worker_dead_between_batches_stops_the_run_with_a_checkpoint(tmp_path,
         made.append(make(*args, **kwargs))
         return made[-1]
 
-    def update_on_batch(cfg, learner, counters, n_frames):
-        out = update(cfg, learner, counters, n_frames)
+    def update_on_batch(cfg, learner, counters, n_frames, **kwargs):
+        out = update(cfg, learner, counters, n_frames, **kwargs)
         if counters["frames"] == 200:
             worker = made[0].procs[1]
             os.kill(worker.pid, signal.SIGKILL)
@@ -271,9 +271,9 @@ def test_weights_are_pushed_once_enough_updates_are_new(every, pushed_at, monkey
 
     real_update = loop.update_on_batch
 
-    def update(cfg, learner, counters, n_frames):  # each batch, before its push
+    def update(cfg, learner, counters, n_frames, **kwargs):  # each batch, before its push
         events.append(counters["frames"])
-        return real_update(cfg, learner, counters, n_frames)
+        return real_update(cfg, learner, counters, n_frames, **kwargs)
 
     monkeypatch.setattr(loop, "push_or_stop", counting)
     monkeypatch.setattr(loop, "update_on_batch", update)

@@ -305,3 +305,106 @@ def test_reset_options_from_a_run_directory_reach_no_env(tmp_path, monkeypatch):
     episode.load_state_dict(state)
     assert episode.restore(env, collector) is None and len(replayed) == 1
     collector.shutdown()
+
+
+class _StopAfter:
+    """A :class:`~torchrl_rave.recipe.collect.StopRequest` stand-in for the loop whose
+    request is made by the test, at a chosen model step or agent update, as a Ctrl-C in
+    the middle of a batch's updates would make it."""
+
+    active = None
+
+    def __init__(self) -> None:
+        self.requested = False
+        _StopAfter.active = self
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc) -> None:
+        _StopAfter.active = None
+
+
+def _stop_at(monkeypatch, owner, name: str, calls: int) -> None:
+    """Requests the stop as ``owner.name`` returns for the ``calls``-th time."""
+    real, made = getattr(owner, name), []
+
+    def counted(*args, **kwargs):
+        out = real(*args, **kwargs)
+        made.append(1)
+        if len(made) == calls:
+            _StopAfter.active.requested = True
+        return out
+
+    monkeypatch.setattr(owner, name, counted)
+
+
+def flat(state) -> dict:
+    """A checkpoint component's leaves by their path."""
+    return dict(torch.utils._pytree.tree_flatten_with_path(state)[0])
+
+
+@pytest.mark.parametrize("group", [None, [0, 1]], ids=["run", "group"])
+def test_a_stop_in_the_middle_of_the_updates_resumes_as_if_never_stopped(
+    group, tmp_path, monkeypatch
+):
+    """A stop (Ctrl-C, SIGTERM) checkpoints after the model step or agent update under way,
+    not after the whole batch's updates (a pretraining of 10,000 model steps took minutes,
+    past a batch scheduler's grace period). Here one stop falls in the world model's
+    pretraining and one between two agent updates; each resumed run first takes what the
+    stopped one owed, and the run ends with the parameters and evaluations of the run
+    never stopped, to the last bit. The stopped batch's training means cover the updates
+    after the resume: those two rows alone differ."""
+    from torchrl_rave.recipe.group import GroupLearner
+    from torchrl_rave.recipe.update import AgentLearner
+    from torchrl_rave.trainers import WorldModelTrainer
+    from torchrl_rave.trainers.seed_group import SeedGroup
+
+    overrides = [*CHEETAH, "algorithm=steve", "world_model.pretrain_updates=12"]
+    if group is not None:
+        overrides.append(f"seeds={group}")
+    runs = [""] if group is None else [f"seed{s}" for s in group]
+    whole, stopped = tmp_path / "whole", tmp_path / "stopped"
+    train(make_cfg(*overrides), str(whole))
+    model_step = (SeedGroup, "update_world_model") if group else (WorldModelTrainer, "_update")
+    update = (GroupLearner, "update") if group else (AgentLearner, "update")
+    monkeypatch.setattr(loop, "StopRequest", _StopAfter)
+
+    with monkeypatch.context() as m:  # in the pretraining, at frame 200
+        _stop_at(m, *model_step, calls=5)
+        train(make_cfg(*overrides), str(stopped))
+    checkpoints = [RunCheckpoint(stopped / run) for run in runs]
+    for c in checkpoints:
+        assert c.read("counters")["frames"] == 200 and c.read("counters")["updates"] == 0
+        assert c.read("world_model_trainer")["pretrain_steps"] == 5
+    with monkeypatch.context() as m:  # after the 3rd of the 10 updates of frame 300
+        _stop_at(m, *update, calls=3)
+        train(make_cfg(*overrides, f"resume={stopped}"), "unused")
+    for c in checkpoints:
+        counters = c.read("counters")
+        assert (counters["frames"], counters["updates"]) == (300, 3)
+        assert counters["update_budget"] == pytest.approx(7.0)
+        assert c.read("world_model_trainer")["pretrain_steps"] == 12
+    train(make_cfg(*overrides, f"resume={stopped}"), "unused")
+
+    for run in runs:
+        final_whole = RunCheckpoint(whole / run)
+        final = checkpoints[runs.index(run)]
+        assert final.read("counters") == final_whole.read("counters")
+        for part in ("loss", "world_model", "optim_actor", "optim_critic", "world_model_trainer"):
+            a, b = (flat(c.read(part)) for c in (final, final_whole))
+            assert a.keys() == b.keys(), part
+            for key, value in a.items():
+                same = torch.equal(value, b[key]) if torch.is_tensor(value) else value == b[key]
+                assert same, f"{part} {key}"
+        expected, resumed = scalars(whole / run / "steve"), scalars(stopped / run / "steve")
+        assert resumed.keys() == expected.keys()
+        for name, rows in expected.items():
+            if name.startswith("train/") and name != "train/episode_reward":
+                # the stopped batch (300): the means of the 7 updates after the resume
+                rows = [r for r in rows if r[0] != 300]
+                got = [r for r in resumed[name] if r[0] != 300]
+                assert [s for s, _ in resumed[name]] == [s for s, _ in expected[name]], name
+            else:
+                got = resumed[name]
+            np.testing.assert_equal(got, rows, name)

@@ -97,6 +97,42 @@ class TestWorldModelTrainer:
         for p, q in zip(a.world_model.parameters(), b_model.parameters(), strict=True):
             torch.testing.assert_close(p, q)
 
+    def test_a_stopped_pretraining_continues_where_it_stopped(self):
+        """``pretrain(rb, stop)`` asks ``stop`` before each step: stopped after 2 of 5
+        steps, its state says so, and a trainer loaded from it takes the other 3 and no
+        more, ending with the weights of a pretraining never stopped."""
+        rb = buffer()
+        whole = WorldModelTrainer(small_model(), pretrain_updates=5)
+        models = [small_model(), small_model()]
+        for m in models:
+            m.load_state_dict(whole.world_model.state_dict())
+        torch.manual_seed(3)
+        whole.pretrain(rb)
+        asked = []
+        first = WorldModelTrainer(models[0], pretrain_updates=5)
+        torch.manual_seed(3)
+        first.pretrain(rb, stop=lambda: asked.append(1) or len(asked) > 2)
+        assert (first.pretrain_steps, first.updates, first.pretrained) == (2, 2, False)
+        state = copy.deepcopy(first.state_dict())
+        rng = torch.get_rng_state()
+        assert state["pretrain_steps"] == 2 and not state["pretrained"]
+        second = WorldModelTrainer(models[1], pretrain_updates=5)
+        models[1].load_state_dict(models[0].state_dict())
+        second.load_state_dict(state)
+        torch.set_rng_state(rng)
+        second.pretrain(rb)
+        assert (second.pretrain_steps, second.updates, second.pretrained) == (5, 5, True)
+        second.pretrain(rb)  # once only
+        assert second.updates == 5
+        for p, q in zip(whole.world_model.parameters(), models[1].parameters(), strict=True):
+            assert torch.equal(p, q)
+        # a checkpoint written before pretraining could stop holds only the flag
+        old = {k: v for k, v in state.items() if k != "pretrain_steps"}
+        for flag, steps in [(True, 5), (False, 0)]:
+            trainer = WorldModelTrainer(small_model(), pretrain_updates=5)
+            trainer.load_state_dict({**old, "pretrained": flag})
+            assert trainer.pretrain_steps == steps
+
     def test_bad_settings(self):
         with pytest.raises(ValueError, match="train_every"):
             WorldModelTrainer(small_model(), train_every=0)

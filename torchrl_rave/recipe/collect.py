@@ -91,7 +91,7 @@ class ProcessWorkerCollector(EpisodeWorkerCollector):
     (:class:`~torchrl_rave.recipe.episode.EpisodeWorkerCollector`) and ignores SIGINT and
     SIGTERM. A Ctrl-C at the terminal, or a batch scheduler's SIGTERM (Slurm's
     ``scancel``), reaches every process of the group; the learner's process answers it (a
-    checkpoint at the end of the batch, then it shuts the workers down), and a worker
+    checkpoint after the update under way, then it shuts the workers down), and a worker
     that died of a Ctrl-C left the learner waiting for its answer forever. A worker still
     ends with its learner: it exits within seconds of its learner's death (a SIGKILL), and
     the collector's shutdown kills one that does not answer."""
@@ -255,8 +255,10 @@ def check_finite(data: TensorDictBase) -> str | None:
 
 
 class StopRequest:
-    """SIGINT/SIGTERM ask the loop to checkpoint and stop at the end of the current batch;
-    a second signal stops at once."""
+    """SIGINT/SIGTERM ask the loop to checkpoint and stop: in the middle of a batch's
+    updates after the update or world-model step under way (the rest is owed to the
+    resumed run, :func:`~torchrl_rave.recipe.update.update_on_batch`), otherwise at the
+    end of the batch; a second signal stops at once."""
 
     def __init__(self) -> None:
         self.requested = False

@@ -157,18 +157,25 @@ class GroupLearner:
             self._sampler = GroupSampler(self.rbs, self.group)
         return self._sampler()
 
-    def _model_steps(self, call: bool):
-        owed = {t.schedule(call) for t in self.trainers}  # the seeds advance in lockstep
+    def _model_steps(self, call: bool, most: int | None = None):
+        owed = {t.schedule(call, most) for t in self.trainers}  # the seeds advance in lockstep
         if len(owed) != 1:
             raise RuntimeError(f"the seeds' world-model schedules disagree: {owed} steps owed")
+        n = owed.pop()
         out = None
-        for _ in range(owed.pop()):
+        for _ in range(n):
             out = self.group.update_world_model(self._sample())
-        return out
+        return out if call else n
 
-    def pretrain(self) -> None:
-        if self.trainers:
-            self._model_steps(call=False)
+    def pretrain(self, stop=None) -> None:
+        """Every seed's pretraining steps, one group step at a time (see
+        :meth:`~torchrl_rave.trainers.WorldModelTrainer.pretrain`)."""
+        while self.trainers and not (stop is not None and stop()):
+            if not self._model_steps(call=False, most=1):
+                return
+
+    def pretraining_left(self) -> int:
+        return max((t.pretrain_updates - t.pretrain_steps for t in self.trainers), default=0)
 
     def world_model_step(self):
         return self._model_steps(call=True) if self.trainers else None

@@ -79,7 +79,12 @@ from torchrl_rave.recipe.group import (
 from torchrl_rave.recipe.metrics import batch_metrics
 from torchrl_rave.recipe.reward import make_reward_relabelling, update_reward_weights
 from torchrl_rave.recipe.schema import default_config, defaults  # noqa: F401 (the example)
-from torchrl_rave.recipe.update import AgentLearner, ppo_update, update_on_batch
+from torchrl_rave.recipe.update import (
+    AgentLearner,
+    batch_cut_short,
+    ppo_update,
+    update_on_batch,
+)
 from torchrl_rave.trainers import SeedStreams
 
 __all__ = ["nothing_to_train", "train"]
@@ -267,6 +272,81 @@ def _train(cfg: DictConfig, run_dir: str) -> dict[str, float]:
     def named(run: _Run) -> str:
         return f"{cfg.env.name} (seed {run.seed})" if group else cfg.env.name
 
+    def evaluate(i: int, run: _Run, frames_now: int) -> dict:
+        """Seed i's evaluation at ``frames_now``, its metrics and their time."""
+        t_eval = time.perf_counter()
+        with streams.use(i):
+            run.eval_env.set_seed(run.seed + 1_000_003 + frames_now)
+            try:
+                run.last_eval = evaluate_agent(run.cfg, run.eval_env, run.agent)
+            except NonFiniteEnvOutput as err:
+                where = stop_run(run.collector, save_checkpoint)
+                raise NonFiniteEnvOutput(
+                    f"{named(run)}: {err} at frame {frames_now}; {where}: fix "
+                    f"the env and rerun with resume={root}"
+                ) from None
+        return {**run.last_eval, "time/eval_s": time.perf_counter() - t_eval}
+
+    def evaluated(frames_now: int) -> bool:
+        """After the evaluations at ``frames_now``: the next one's frame, and whether the
+        curriculum moves to its next stage."""
+        while counters["next_eval"] <= frames_now:
+            counters["next_eval"] += cfg.eval.interval
+        if curriculum is None or frames_now >= total:
+            return False
+        next_stage = curriculum.update(runs[0].last_eval)
+        counters["curriculum_stage"] = curriculum.stage
+        if next_stage:  # the next stage starts new episodes in new envs
+            runs[0].episode.attach(None, None)
+        return next_stage
+
+    def checkpoint_due(frames_now: int) -> bool:
+        if frames_now >= counters["next_checkpoint"] or frames_now >= total:
+            while counters["next_checkpoint"] <= frames_now:
+                counters["next_checkpoint"] += cfg.checkpoint.interval
+            return True
+        return False
+
+    def next_stage_envs() -> None:
+        for run in runs:
+            if run.collector is not None:
+                run.collector.shutdown()
+            run.env.close()
+            run.eval_env.close()
+            run.env, run.eval_env = envs(run.cfg)
+            run.env.set_seed(run.seed + counters["frames"])
+
+    def finish_cut_batch() -> bool:
+        """A run resumed from the checkpoint of a stop that cut a batch's updates short
+        takes them now, before it collects again, as the run would have: the owed
+        pretraining and updates, then the batch's evaluation and checkpoint where due, and
+        its log (the means of the updates taken here, the evaluation). Returns whether
+        it finished the batch (a new stop may cut it short again)."""
+        accs = update_on_batch(cfg, learner, counters, 0, stop=lambda: stop.requested)
+        if batch_cut_short(cfg, learner, counters):
+            save_checkpoint()
+            return False
+        frames_now = counters["frames"]
+        evaluate_now = frames_now >= counters["next_eval"] or frames_now >= total
+        for i, (run, acc) in enumerate(zip(runs, accs, strict=True)):
+            metrics = {k: torch.stack(v).mean().item() for k, v in acc.items()}
+            if curriculum is not None:
+                metrics["train/curriculum_stage"] = curriculum.stage
+            if evaluate_now:
+                metrics.update(evaluate(i, run, frames_now))
+            metrics.update(q_at_points(run.agent.loss, cfg.logger.q_points, cfg.env.reward_scale))
+            if run.logger is not None:
+                for key, value in metrics.items():
+                    run.logger.log_scalar(key, value, step=frames_now)
+        if evaluate_now and evaluated(frames_now):
+            next_stage_envs()
+        if checkpoint_due(frames_now) or stop.requested:
+            save_checkpoint()
+        for i, run in enumerate(runs):  # the random state the next batch starts from
+            with streams.use(i):
+                run.rng_at_load = GlobalRNGState().state_dict()
+        return True
+
     # Main loop
     total = cfg.collector.total_frames
     pbar = tqdm.tqdm(
@@ -276,7 +356,9 @@ def _train(cfg: DictConfig, run_dir: str) -> dict[str, float]:
     with StopRequest() as stop, contextlib.ExitStack() as on_error:
         for run in runs:  # on an error, no run's workers outlive it
             on_error.enter_context(shutdown_on_error(lambda run=run: run.collector))
-        while counters["frames"] < total:  # again after each curriculum stage
+        if cfg.resume and batch_cut_short(cfg, learner, counters):
+            finish_cut_batch()
+        while counters["frames"] < total and not stop.requested:  # again after each stage
             for i, run in enumerate(runs):
                 with streams.use(i):
                     run.collector = make_collector(
@@ -325,7 +407,14 @@ def _train(cfg: DictConfig, run_dir: str) -> dict[str, float]:
                             run.agent.world_model_trainer.extend(d)
                         weights.append({} if run.relabel is None else update_reward_weights(
                             cfg, run.relabel, run.delayed, counters, run.last_eval))  # fmt: skip
-                    accs = update_on_batch(cfg, learner, counters, n_frames)
+                    accs = update_on_batch(
+                        cfg, learner, counters, n_frames, stop=lambda: stop.requested
+                    )
+                    if batch_cut_short(cfg, learner, counters):  # by a stop: checkpoint now
+                        for run, s in zip(runs, shared, strict=True):  # their copies will
+                            run.episode.workers_behind = not s  # be older than the learner's
+                        save_checkpoint()  # a resumed run takes the rest first (and logs)
+                        break
                     for acc, w in zip(accs, weights, strict=True):
                         for key, value in w.items():
                             acc[key].append(torch.tensor(value))
@@ -339,25 +428,13 @@ def _train(cfg: DictConfig, run_dir: str) -> dict[str, float]:
                     run.episode.workers_behind = counters["updates"] != synced_at and not s
 
                 frames_now = counters["frames"]
-                evaluate = frames_now >= counters["next_eval"] or frames_now >= total
+                evaluate_now = frames_now >= counters["next_eval"] or frames_now >= total
                 fps = (frames_now - frames_at_start) / (time.perf_counter() - start)
                 stage = None if curriculum is None else curriculum.stage  # collected in
                 for i, (run, d, acc) in enumerate(zip(runs, data, accs, strict=True)):
                     metrics = batch_metrics(acc, d, collect_s, update_s, fps)
-                    if evaluate:
-                        t_eval = time.perf_counter()
-                        with streams.use(i):
-                            run.eval_env.set_seed(run.seed + 1_000_003 + frames_now)
-                            try:
-                                run.last_eval = evaluate_agent(run.cfg, run.eval_env, run.agent)
-                            except NonFiniteEnvOutput as err:
-                                where = stop_run(run.collector, save_checkpoint)
-                                raise NonFiniteEnvOutput(
-                                    f"{named(run)}: {err} at frame {frames_now}; {where}: fix "
-                                    f"the env and rerun with resume={root}"
-                                ) from None
-                        metrics.update(run.last_eval)
-                        metrics["time/eval_s"] = time.perf_counter() - t_eval
+                    if evaluate_now:
+                        metrics.update(evaluate(i, run, frames_now))
                     if stage is not None:
                         metrics["train/curriculum_stage"] = stage
                     metrics.update(
@@ -366,37 +443,19 @@ def _train(cfg: DictConfig, run_dir: str) -> dict[str, float]:
                     if run.logger is not None:
                         for key, value in metrics.items():
                             run.logger.log_scalar(key, value, step=frames_now)
-                if evaluate:
-                    while counters["next_eval"] <= frames_now:
-                        counters["next_eval"] += cfg.eval.interval
-                    if curriculum is not None and frames_now < total:
-                        next_stage = curriculum.update(runs[0].last_eval)
-                        counters["curriculum_stage"] = curriculum.stage
-                        if next_stage:  # the next stage starts new episodes in new envs
-                            runs[0].episode.attach(None, None)
+                if evaluate_now:
+                    next_stage = evaluated(frames_now)
                 pbar.update(n_frames)
                 if runs[0].last_eval:
                     pbar.set_postfix(eval_return=f"{runs[0].last_eval['eval/return']:.1f}")
-                if (
-                    frames_now >= counters["next_checkpoint"]
-                    or frames_now >= total
-                    or stop.requested
-                ):
-                    while counters["next_checkpoint"] <= frames_now:
-                        counters["next_checkpoint"] += cfg.checkpoint.interval
+                if checkpoint_due(frames_now) or stop.requested:
                     save_checkpoint()
                 if stop.requested or next_stage or frames_now >= total:
                     break
                 t_collect = time.perf_counter()
             if stop.requested or not next_stage:
                 break
-            # the next stage: new envs with its setting, and collectors for them
-            for run in runs:
-                run.collector.shutdown()
-                run.env.close()
-                run.eval_env.close()
-                run.env, run.eval_env = envs(run.cfg)
-                run.env.set_seed(run.seed + counters["frames"])
+            next_stage_envs()  # the next stage: new envs with its setting, new collectors
     pbar.close()
     for run in runs:
         if run.collector is not None:

@@ -4,11 +4,17 @@ agent's update step, optionally compiled (:class:`AgentLearner`), and PPO's iter
 The schedule is written once for any number of seeds: it drives a *learner*, the updates
 of a run's seeds, which is :class:`AgentLearner` for a single run and
 :class:`~torchrl_rave.recipe.group.GroupLearner` for a seed group (one batched update
-of all its seeds). A learner has ``num_seeds``, ``policy_delay``, and three calls:
-``pretrain()`` (the world models' pretraining, once), ``world_model_step()`` (the model
-steps one agent update owes, each seed's outputs or ``None``) and ``update(step_actor)``
-(one agent update: each seed's :func:`~torchrl_rave.recipe.metrics.record_update`
-keywords).
+of all its seeds). A learner has ``num_seeds``, ``policy_delay``, and four calls:
+``pretrain(stop)`` (the world models' pretraining, once; it ends early when ``stop()``
+turns true, and the next call takes the rest), ``pretraining_left()`` (the pretraining
+steps not taken yet), ``world_model_step()`` (the model steps one agent update owes, each
+seed's outputs or ``None``) and ``update(step_actor)`` (one agent update: each seed's
+:func:`~torchrl_rave.recipe.metrics.record_update` keywords).
+
+A stop requested in the middle of a batch's updates (Ctrl-C, SIGTERM) ends them after the
+current step: the updates not taken stay in ``counters["update_budget"]`` (and the
+pretraining steps not taken in the world-model trainers), so the run checkpoints within one
+update and a resumed run takes them before it collects again (:func:`batch_cut_short`).
 """
 
 from __future__ import annotations
@@ -35,6 +41,7 @@ __all__ = [
     "make_agent_step",
     "ppo_update",
     "total_loss",
+    "batch_cut_short",
     "update_on_batch",
 ]
 
@@ -224,9 +231,13 @@ class AgentLearner:
         self._step = make_agent_step(cfg, agent.loss, agent.optimizers, agent.target_updater)
         self._critic_key = critic_loss_key(agent.loss)
 
-    def pretrain(self) -> None:
+    def pretrain(self, stop: Callable[[], bool] | None = None) -> None:
         if self.agent.world_model_trainer is not None:
-            self.agent.world_model_trainer.pretrain(self.rb)
+            self.agent.world_model_trainer.pretrain(self.rb, stop)
+
+    def pretraining_left(self) -> int:
+        trainer = self.agent.world_model_trainer
+        return 0 if trainer is None else trainer.pretrain_updates - trainer.pretrain_steps
 
     def world_model_step(self) -> list | None:
         trainer = self.agent.world_model_trainer
@@ -252,22 +263,35 @@ class AgentLearner:
 
 
 def update_on_batch(
-    cfg: DictConfig, learner, counters: dict, n_frames: int
+    cfg: DictConfig,
+    learner,
+    counters: dict,
+    n_frames: int,
+    stop: Callable[[], bool] | None = None,
 ) -> list[dict[str, list[torch.Tensor]]]:
     """The updates a batch of ``n_frames`` new frames (per seed) pays for: ``optim.utd_ratio``
     per frame once the learning starts, the world models pretrained first (once), each
     agent update after the model steps it owes, the actor every ``policy_delay`` updates.
-    Returns each seed's training metrics of every update."""
+    Returns each seed's training metrics of every update.
+
+    ``stop`` is asked before every pretraining step and every update; once it returns
+    ``True`` the rest is left owed (see the module's docstring). With ``n_frames=0`` the
+    call takes only what an earlier call left owed."""
     acc = [defaultdict(list) for _ in range(learner.num_seeds)]
     start_frames = learning_start(cfg)[0]
     if counters["frames"] < start_frames:
         return acc
-    learner.pretrain()  # once, as soon as F frames are stored
     new_frames = min(n_frames, counters["frames"] - start_frames)
     counters["update_budget"] += cfg.optim.utd_ratio * new_frames
+    learner.pretrain(stop)  # once, as soon as F frames are stored
+    if learner.pretraining_left():  # stopped: the updates wait for the rest of it
+        return acc
     n_updates = int(counters["update_budget"])
     counters["update_budget"] -= n_updates
-    for _ in range(n_updates):
+    for k in range(n_updates):
+        if stop is not None and stop():
+            counters["update_budget"] += n_updates - k  # owed
+            break
         wm = learner.world_model_step()
         step_actor = counters["updates"] % learner.policy_delay == 0
         outs = learner.update(step_actor)
@@ -275,3 +299,11 @@ def update_on_batch(
         for i, out in enumerate(outs):
             record_update(acc[i], world_model=None if wm is None else wm[i], **out)
     return acc
+
+
+def batch_cut_short(cfg: DictConfig, learner, counters: dict) -> bool:
+    """Whether a stop left updates of the last batch owed (:func:`update_on_batch` with
+    ``stop``): pretraining steps once learning has started, or whole agent updates."""
+    if learner is None or counters["frames"] < learning_start(cfg)[0]:
+        return False
+    return counters["update_budget"] >= 1 or learner.pretraining_left() > 0

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from typing import Any
 
 import torch
@@ -91,7 +92,7 @@ class WorldModelTrainer(TrainerHookBase):
         )
         self.pretrain_updates = pretrain_updates
         self.train_every = train_every
-        self.pretrained = False
+        self.pretrain_steps = 0  # pretraining steps taken (a stop may cut pretraining short)
         self.calls = 0  # step() calls: one per agent update
         self.updates = 0  # optimiser steps taken
         self._loss_total = self._loss_total_eager
@@ -116,21 +117,39 @@ class WorldModelTrainer(TrainerHookBase):
         """
         return self._take(self.schedule(), source)
 
-    def pretrain(self, source: ReplayBuffer | TensorDictBase) -> TensorDictBase | None:
+    def pretrain(
+        self, source: ReplayBuffer | TensorDictBase, stop: Callable[[], bool] | None = None
+    ) -> TensorDictBase | None:
         """The ``pretrain_updates`` steps, once; :meth:`step` calls it, and a loop may call
-        it earlier (as soon as ``F`` frames are stored). Returns the last step's outputs."""
-        return self._take(self.schedule(call=False), source)
+        it earlier (as soon as ``F`` frames are stored). Returns the last step's outputs.
 
-    def schedule(self, call: bool = True) -> int:
+        With ``stop``, asked before each step, pretraining ends early once it returns
+        ``True``; the steps taken are counted (also in :meth:`state_dict`), and the next
+        call takes the rest, so a run stopped in the middle of a long pretraining resumes
+        it where it stopped."""
+        out = None
+        while not (stop is not None and stop()) and self.schedule(call=False, most=1):
+            out = self._update(self._on_device(self._batch(source)))
+        return out
+
+    @property
+    def pretrained(self) -> bool:
+        """Whether every pretraining step has been taken."""
+        return self.pretrain_steps >= self.pretrain_updates
+
+    def schedule(self, call: bool = True, most: int | None = None) -> int:
         """Advances the schedule as :meth:`step` (``call=True``) or :meth:`pretrain`
         (``call=False``) does, and returns the number of model steps that call takes (the
         pretraining's at the first, then one every ``train_every`` calls), counted in
         ``updates`` as taken. :meth:`step` and :meth:`pretrain` then take them; a
         caller that takes them itself (a seed group steps all its seeds' models as one)
-        uses this alone, so that each seed's trainer keeps its schedule for checkpoints."""
-        n = 0
-        if not self.pretrained:
-            n, self.pretrained = self.pretrain_updates, True
+        uses this alone, so that each seed's trainer keeps its schedule for checkpoints.
+        ``most`` bounds the pretraining steps counted by this call (``call=False``: one at
+        a time, for a pretraining that can stop between steps)."""
+        n = max(self.pretrain_updates - self.pretrain_steps, 0)
+        if most is not None:
+            n = min(n, most)
+        self.pretrain_steps += n
         if call:
             n += self.calls % self.train_every == 0
             self.calls += 1
@@ -183,13 +202,16 @@ class WorldModelTrainer(TrainerHookBase):
         return {
             "optimizer": self.optimizer.state_dict(),
             "pretrained": self.pretrained,
+            "pretrain_steps": self.pretrain_steps,
             "calls": self.calls,
             "updates": self.updates,
         }
 
     def load_state_dict(self, state_dict: dict[str, Any]) -> None:
         self.optimizer.load_state_dict(state_dict["optimizer"])
-        self.pretrained = bool(state_dict["pretrained"])
+        # a checkpoint written before pretraining could stop early holds only the flag
+        done = self.pretrain_updates if state_dict["pretrained"] else 0
+        self.pretrain_steps = int(state_dict.get("pretrain_steps", done))
         self.calls = int(state_dict["calls"])
         self.updates = int(state_dict["updates"])
 
