@@ -322,14 +322,18 @@ def _train(cfg: DictConfig, run_dir: str) -> dict[str, float]:
         pretraining and updates, then the batch's evaluation and checkpoint where due, and
         its log (the means of the updates taken here, the evaluation). Returns whether
         it finished the batch (a new stop may cut it short again)."""
+        # the reward weights the batch's updates relabel with (the checkpoint's counters
+        # hold the delayed term's start)
+        weights = [{} if run.relabel is None else update_reward_weights(
+            cfg, run.relabel, run.delayed, counters, run.last_eval) for run in runs]  # fmt: skip
         accs = update_on_batch(cfg, learner, counters, 0, stop=lambda: stop.requested)
         if batch_cut_short(cfg, learner, counters):
             save_checkpoint()
             return False
         frames_now = counters["frames"]
         evaluate_now = frames_now >= counters["next_eval"] or frames_now >= total
-        for i, (run, acc) in enumerate(zip(runs, accs, strict=True)):
-            metrics = {k: torch.stack(v).mean().item() for k, v in acc.items()}
+        for i, (run, acc, w) in enumerate(zip(runs, accs, weights, strict=True)):
+            metrics = {k: torch.stack(v).mean().item() for k, v in acc.items()} | w
             if curriculum is not None:
                 metrics["train/curriculum_stage"] = curriculum.stage
             if evaluate_now:
