@@ -13,6 +13,7 @@ from __future__ import annotations
 import json
 import os
 import warnings
+from collections.abc import Callable
 from pathlib import Path
 
 import torch
@@ -167,7 +168,7 @@ class GroupLearner:
             out = self.group.update_world_model(self._sample())
         return out if call else n
 
-    def pretrain(self, stop=None) -> None:
+    def pretrain(self, stop: Callable[[], bool] | None = None) -> None:
         """Every seed's pretraining steps, one group step at a time (see
         :meth:`~torchrl_rave.trainers.WorldModelTrainer.pretrain`)."""
         while self.trainers and not (stop is not None and stop()):
