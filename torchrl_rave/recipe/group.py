@@ -162,21 +162,19 @@ class GroupLearner:
         owed = {t.schedule(call, most) for t in self.trainers}  # the seeds advance in lockstep
         if len(owed) != 1:
             raise RuntimeError(f"the seeds' world-model schedules disagree: {owed} steps owed")
-        n = owed.pop()
         out = None
-        for _ in range(n):
+        for _ in range(owed.pop()):
             out = self.group.update_world_model(self._sample())
-        return out if call else n
+        return out
 
     def pretrain(self, stop: Callable[[], bool] | None = None) -> None:
         """Every seed's pretraining steps, one group step at a time (see
         :meth:`~torchrl_rave.trainers.WorldModelTrainer.pretrain`)."""
-        while self.trainers and not (stop is not None and stop()):
-            if not self._model_steps(call=False, most=1):
-                return
+        while self.pretraining_left() and not (stop is not None and stop()):
+            self._model_steps(call=False, most=1)
 
     def pretraining_left(self) -> int:
-        return max((t.pretrain_updates - t.pretrain_steps for t in self.trainers), default=0)
+        return max((t.pretraining_left for t in self.trainers), default=0)
 
     def world_model_step(self):
         return self._model_steps(call=True) if self.trainers else None

@@ -76,7 +76,7 @@ from torchrl_rave.recipe.group import (
     seed_config,
     write_group_file,
 )
-from torchrl_rave.recipe.metrics import batch_metrics
+from torchrl_rave.recipe.metrics import batch_metrics, update_means
 from torchrl_rave.recipe.reward import make_reward_relabelling, update_reward_weights
 from torchrl_rave.recipe.schema import default_config, defaults  # noqa: F401 (the example)
 from torchrl_rave.recipe.update import (
@@ -316,32 +316,49 @@ def _train(cfg: DictConfig, run_dir: str) -> dict[str, float]:
             run.env, run.eval_env = envs(run.cfg)
             run.env.set_seed(run.seed + counters["frames"])
 
+    def batch_updates(n_frames: int) -> list[dict] | None:
+        """The updates a batch of ``n_frames`` new frames pays for (:func:`update_on_batch`,
+        a stop may cut them short), the reward terms relabelled with the weights of the
+        batch; each seed's training metrics with those weights, or ``None`` when a stop
+        left some updates owed."""
+        weights = [{} if run.relabel is None else update_reward_weights(
+            cfg, run.relabel, run.delayed, counters, run.last_eval) for run in runs]  # fmt: skip
+        accs = update_on_batch(cfg, learner, counters, n_frames, stop=lambda: stop.requested)
+        if batch_cut_short(cfg, learner, counters):
+            return None
+        for acc, w in zip(accs, weights, strict=True):
+            for key, value in w.items():
+                acc[key].append(torch.tensor(value))
+        return accs
+
+    def log_batch(i: int, run: _Run, metrics: dict, frames_now: int, evaluate_now: bool,
+                  stage: int | None) -> None:  # fmt: skip
+        """Logs seed i's batch ``metrics`` at ``frames_now``, with its evaluation where due,
+        the curriculum ``stage`` it was collected in and the critics at the fixed points."""
+        if evaluate_now:
+            metrics.update(evaluate(i, run, frames_now))
+        if stage is not None:
+            metrics["train/curriculum_stage"] = stage
+        metrics.update(q_at_points(run.agent.loss, cfg.logger.q_points, cfg.env.reward_scale))
+        if run.logger is not None:
+            for key, value in metrics.items():
+                run.logger.log_scalar(key, value, step=frames_now)
+
     def finish_cut_batch() -> bool:
         """A run resumed from the checkpoint of a stop that cut a batch's updates short
         takes them now, before it collects again, as the run would have: the owed
         pretraining and updates, then the batch's evaluation and checkpoint where due, and
         its log (the means of the updates taken here, the evaluation). Returns whether
         it finished the batch (a new stop may cut it short again)."""
-        # the reward weights the batch's updates relabel with (the checkpoint's counters
-        # hold the delayed term's start)
-        weights = [{} if run.relabel is None else update_reward_weights(
-            cfg, run.relabel, run.delayed, counters, run.last_eval) for run in runs]  # fmt: skip
-        accs = update_on_batch(cfg, learner, counters, 0, stop=lambda: stop.requested)
-        if batch_cut_short(cfg, learner, counters):
+        accs = batch_updates(0)  # the relabelling weights: the delayed term's start is saved
+        if accs is None:
             save_checkpoint()
             return False
         frames_now = counters["frames"]
         evaluate_now = frames_now >= counters["next_eval"] or frames_now >= total
-        for i, (run, acc, w) in enumerate(zip(runs, accs, weights, strict=True)):
-            metrics = {k: torch.stack(v).mean().item() for k, v in acc.items()} | w
-            if curriculum is not None:
-                metrics["train/curriculum_stage"] = curriculum.stage
-            if evaluate_now:
-                metrics.update(evaluate(i, run, frames_now))
-            metrics.update(q_at_points(run.agent.loss, cfg.logger.q_points, cfg.env.reward_scale))
-            if run.logger is not None:
-                for key, value in metrics.items():
-                    run.logger.log_scalar(key, value, step=frames_now)
+        stage = None if curriculum is None else curriculum.stage
+        for i, (run, acc) in enumerate(zip(runs, accs, strict=True)):
+            log_batch(i, run, update_means(acc), frames_now, evaluate_now, stage)
         if evaluate_now and evaluated(frames_now):
             next_stage_envs()
         if checkpoint_due(frames_now) or stop.requested:
@@ -404,24 +421,16 @@ def _train(cfg: DictConfig, run_dir: str) -> dict[str, float]:
                     accs = [ppo_update(cfg, run.agent, run.rb, b, counters)
                             for run, b in zip(runs, batches, strict=True)]  # fmt: skip
                 else:
-                    weights = []
                     for run, d in zip(runs, data, strict=True):
                         run.rb.extend(d)
                         if run.agent.world_model_trainer is not None:
                             run.agent.world_model_trainer.extend(d)
-                        weights.append({} if run.relabel is None else update_reward_weights(
-                            cfg, run.relabel, run.delayed, counters, run.last_eval))  # fmt: skip
-                    accs = update_on_batch(
-                        cfg, learner, counters, n_frames, stop=lambda: stop.requested
-                    )
-                    if batch_cut_short(cfg, learner, counters):  # by a stop: checkpoint now
+                    accs = batch_updates(n_frames)
+                    if accs is None:  # cut short by a stop: checkpoint now
                         for run, s in zip(runs, shared, strict=True):  # their copies will
                             run.episode.workers_behind = not s  # be older than the learner's
                         save_checkpoint()  # a resumed run takes the rest first (and logs)
                         break
-                    for acc, w in zip(accs, weights, strict=True):
-                        for key, value in w.items():
-                            acc[key].append(torch.tensor(value))
                 update_s = time.perf_counter() - t_update
                 if counters["updates"] - synced_at >= cfg.collector.weight_sync_every:
                     for run in runs:
@@ -436,17 +445,8 @@ def _train(cfg: DictConfig, run_dir: str) -> dict[str, float]:
                 fps = (frames_now - frames_at_start) / (time.perf_counter() - start)
                 stage = None if curriculum is None else curriculum.stage  # collected in
                 for i, (run, d, acc) in enumerate(zip(runs, data, accs, strict=True)):
-                    metrics = batch_metrics(acc, d, collect_s, update_s, fps)
-                    if evaluate_now:
-                        metrics.update(evaluate(i, run, frames_now))
-                    if stage is not None:
-                        metrics["train/curriculum_stage"] = stage
-                    metrics.update(
-                        q_at_points(run.agent.loss, cfg.logger.q_points, cfg.env.reward_scale)
-                    )
-                    if run.logger is not None:
-                        for key, value in metrics.items():
-                            run.logger.log_scalar(key, value, step=frames_now)
+                    log_batch(i, run, batch_metrics(acc, d, collect_s, update_s, fps),
+                              frames_now, evaluate_now, stage)  # fmt: skip
                 if evaluate_now:
                     next_stage = evaluated(frames_now)
                 pbar.update(n_frames)

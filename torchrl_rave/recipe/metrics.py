@@ -19,7 +19,14 @@ import re
 
 import torch
 
-__all__ = ["METRICS", "WORLD_MODEL_METRICS", "batch_metrics", "describe", "record_update"]
+__all__ = [
+    "METRICS",
+    "WORLD_MODEL_METRICS",
+    "batch_metrics",
+    "describe",
+    "record_update",
+    "update_means",
+]
 
 #: metric name (with ``{H}`` or ``{name}`` where it varies) -> its meaning
 METRICS: dict[str, str] = {
@@ -125,10 +132,15 @@ def record_update(
             acc[f"train/candidate_variance_h{h}"].append(v)
 
 
+def update_means(acc: dict) -> dict:
+    """The means of a batch's updates' ``acc`` (each key's recorded values)."""
+    return {k: torch.stack(v).mean().item() for k, v in acc.items()}
+
+
 def batch_metrics(acc: dict, data, collect_s: float, update_s: float, fps: float) -> dict:
     """One collected batch's logged metrics: the means of its updates' ``acc``, the return
     of the training episodes that ended in ``data``, and its timings."""
-    metrics = {k: torch.stack(v).mean().item() for k, v in acc.items()}
+    metrics = update_means(acc)
     done = data["next", "done"].squeeze(-1)
     if done.any():
         metrics["train/episode_reward"] = data["next", "episode_reward"][done].mean().item()

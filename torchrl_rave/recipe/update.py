@@ -237,7 +237,7 @@ class AgentLearner:
 
     def pretraining_left(self) -> int:
         trainer = self.agent.world_model_trainer
-        return 0 if trainer is None else trainer.pretrain_updates - trainer.pretrain_steps
+        return 0 if trainer is None else trainer.pretraining_left
 
     def world_model_step(self) -> list | None:
         trainer = self.agent.world_model_trainer

@@ -128,14 +128,19 @@ class WorldModelTrainer(TrainerHookBase):
         call takes the rest, so a run stopped in the middle of a long pretraining resumes
         it where it stopped."""
         out = None
-        while not (stop is not None and stop()) and self.schedule(call=False, most=1):
-            out = self._update(self._on_device(self._batch(source)))
+        while self.pretraining_left and not (stop is not None and stop()):
+            out = self._take(self.schedule(call=False, most=1), source)
         return out
+
+    @property
+    def pretraining_left(self) -> int:
+        """The pretraining steps not taken yet."""
+        return max(self.pretrain_updates - self.pretrain_steps, 0)
 
     @property
     def pretrained(self) -> bool:
         """Whether every pretraining step has been taken."""
-        return self.pretrain_steps >= self.pretrain_updates
+        return not self.pretraining_left
 
     def schedule(self, call: bool = True, most: int | None = None) -> int:
         """Advances the schedule as :meth:`step` (``call=True``) or :meth:`pretrain`
@@ -146,7 +151,7 @@ class WorldModelTrainer(TrainerHookBase):
         uses this alone, so that each seed's trainer keeps its schedule for checkpoints.
         ``most`` bounds the pretraining steps counted by this call (``call=False``: one at
         a time, for a pretraining that can stop between steps)."""
-        n = max(self.pretrain_updates - self.pretrain_steps, 0)
+        n = self.pretraining_left
         if most is not None:
             n = min(n, most)
         self.pretrain_steps += n
