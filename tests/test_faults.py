@@ -116,6 +116,30 @@ class TestChecksums:
         assert (checkpoint.root / "damaged" / newest.name).is_dir()
         assert not newest.exists()
 
+    def test_a_buffer_saved_again_right_after_loading_round_trips_without_a_warning(
+        self, tmp_path, recwarn
+    ):
+        """A resumed run can checkpoint before it writes to its buffer (a stop during its
+        owed updates). TorchRL then warns that the buffer "may not be saved properly"
+        (its storage's write cursor is unset after a load); with no save hooks nothing
+        reads that cursor, and the buffer comes back whole."""
+        first = RunCheckpoint(tmp_path / "first")
+        first.save(100, replay_buffer=replay_buffer())
+        loaded = replay_buffer(0)
+        first.load(replay_buffer=loaded)
+        second = RunCheckpoint(tmp_path / "second")
+        second.save(100, replay_buffer=loaded)
+        assert not [w for w in recwarn if issubclass(w.category, UserWarning)], [
+            str(w.message) for w in recwarn
+        ]
+        again = replay_buffer(0)
+        second.load(replay_buffer=again)
+        assert len(again) == FRAMES
+        assert torch.equal(again[:FRAMES]["observation"], replay_buffer()[:FRAMES]["observation"])
+        # the writer goes on where the saved buffer's did
+        again.extend(replay_buffer(10, seed=1)[:10])
+        assert len(again) == FRAMES + 10
+
     def test_a_truncated_buffer_is_never_loaded_silently(self, tmp_path):
         """Defect 3: the buffer came back as zeros and was trained on."""
         checkpoint = RunCheckpoint(tmp_path)
