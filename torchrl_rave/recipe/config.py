@@ -13,6 +13,7 @@ import importlib.util
 import math
 import os
 import re
+import time
 import warnings
 from dataclasses import dataclass
 
@@ -511,11 +512,68 @@ def check_ray_fits(cfg: DictConfig, total: dict, where: str) -> None:
         raise ConfigError(problems)
 
 
+class BusyCoresWarning(UserWarning):
+    """Other processes keep so many of this process's cores busy that torch's threads
+    outnumber the free ones: each parallel kernel then waits for threads that are not
+    running, and a run can take several times as long (:func:`apply_process_settings`)."""
+
+
+def _core_ticks(stat: str, cores: set[int]) -> dict[int, tuple[int, int]]:
+    """Each listed core's (all, idle) clock ticks since boot, from the text of
+    ``/proc/stat`` (idle: its ``idle`` and ``iowait`` columns; all: the first eight
+    columns, which hold every tick once)."""
+    out = {}
+    for line in stat.splitlines():
+        name, *fields = line.split()
+        if name.startswith("cpu") and name[3:].isdigit() and int(name[3:]) in cores:
+            ticks = [int(x) for x in fields[:8]]
+            out[int(name[3:])] = (sum(ticks), ticks[3] + ticks[4])
+    return out
+
+
+def busy_cores(window: float = 0.2) -> tuple[float, int] | None:
+    """How many of the cores this process may run on (its affinity) are busy, summed over
+    cores as each one's non-idle share of the next ``window`` seconds, and how many it may
+    run on. The calling thread sleeps meanwhile, so a process that runs nothing else
+    measures the others. ``None`` where ``/proc/stat`` cannot be read (not Linux)."""
+    try:
+        cores = os.sched_getaffinity(0)
+        with open("/proc/stat") as f:
+            first = _core_ticks(f.read(), cores)
+        time.sleep(window)
+        with open("/proc/stat") as f:
+            second = _core_ticks(f.read(), cores)
+    except (AttributeError, OSError):
+        return None
+    busy = 0.0
+    for core, (total, idle) in second.items():
+        if core in first and total > first[core][0]:
+            busy += 1.0 - (idle - first[core][1]) / (total - first[core][0])
+    return busy, len(cores)
+
+
 def apply_process_settings(cfg: DictConfig) -> None:
     """The learner process's own settings: ``threads`` (torch's thread count) and
-    ``keep_freed_memory`` (:func:`~torchrl_rave.recipe.memory.keep_freed_memory`)."""
+    ``keep_freed_memory`` (:func:`~torchrl_rave.recipe.keep_freed_memory`). Warns
+    (:class:`BusyCoresWarning`) when torch runs more threads than other processes leave
+    cores free (:func:`busy_cores`, measured only for more than one thread)."""
     if cfg.threads:
         torch.set_num_threads(cfg.threads)
+    threads = torch.get_num_threads()
+    measured = busy_cores() if threads > 1 else None
+    if measured is not None:
+        busy, cores = measured
+        free = max(1, round(cores - busy))
+        if threads > free:
+            warnings.warn(
+                f"torch runs {threads} threads in this process, and other processes keep "
+                f"{busy:.1f} of the {cores} cores it may use busy: with more threads than "
+                "free cores each parallel kernel waits for threads that are not running, "
+                "and a run can take several times as long (docs: performance, threads); "
+                f"threads={free} fits the free cores",
+                BusyCoresWarning,
+                stacklevel=2,
+            )
     if cfg.keep_freed_memory:
         memory.keep_freed_memory()
 
