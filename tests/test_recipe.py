@@ -761,6 +761,7 @@ class TestBusyCores:
             "cpu12 1 1 1 1 1 1 1 1 0 0\n"
             "intr 12345 6 7\n"
             "ctxt 999\n"
+            "\n"
         )
         assert _core_ticks(stat, {0, 1}) == {0: (100, 84), 1: (100, 70)}
         assert _core_ticks(stat, {12}) == {12: (8, 2)}

@@ -524,7 +524,7 @@ def _core_ticks(stat: str, cores: set[int]) -> dict[int, tuple[int, int]]:
     columns, which hold every tick once)."""
     out = {}
     for line in stat.splitlines():
-        name, *fields = line.split()
+        name, *fields = line.split() or [""]
         if name.startswith("cpu") and name[3:].isdigit() and int(name[3:]) in cores:
             ticks = [int(x) for x in fields[:8]]
             out[int(name[3:])] = (sum(ticks), ticks[3] + ticks[4])
