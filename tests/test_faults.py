@@ -137,8 +137,10 @@ class TestChecksums:
         assert len(again) == FRAMES
         assert torch.equal(again[:FRAMES]["observation"], replay_buffer()[:FRAMES]["observation"])
         # the writer goes on where the saved buffer's did
-        again.extend(replay_buffer(10, seed=1)[:10])
+        more = replay_buffer(10, seed=1)[:10]
+        again.extend(more)
         assert len(again) == FRAMES + 10
+        assert torch.equal(again[FRAMES : FRAMES + 10]["observation"], more["observation"])
 
     def test_a_truncated_buffer_is_never_loaded_silently(self, tmp_path):
         """Defect 3: the buffer came back as zeros and was trained on."""
