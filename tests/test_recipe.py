@@ -793,6 +793,7 @@ class TestBusyCores:
 
         threads = torch.get_num_threads()
         cfg = make_cfg(*TINY, "threads=2", "keep_freed_memory=false")
+        monkeypatch.setattr(config, "cpu_quota", lambda: None)  # whatever the test machine's
         try:
             monkeypatch.setattr(config, "busy_cores", lambda: (1.1, 2))
             with pytest.warns(BusyCoresWarning, match=r"torch runs 2 threads in this process, "
@@ -809,5 +810,69 @@ class TestBusyCores:
             monkeypatch.setattr(config, "busy_cores", not_measured)
             cfg.threads = 1
             apply_process_settings(cfg)
+        finally:
+            torch.set_num_threads(threads)
+
+    @staticmethod
+    def _tree(root, files: dict) -> None:
+        for name, text in files.items():
+            (root / name).parent.mkdir(parents=True, exist_ok=True)
+            (root / name).write_text(text)
+
+    def test_a_cgroup_v2_quota_is_the_tightest_along_the_path(self, tmp_path):
+        from torchrl_rave.recipe.config import cpu_quota
+
+        self._tree(tmp_path, {
+            "cpu.max": "max 100000\n",  # the root: no quota
+            "jobs/cpu.max": "400000 100000\n",  # 4 cores
+            "jobs/run7/cpu.max": "150000 50000\n",  # 3 cores, the tightest
+            "jobs/run7/leaf/cpu.max": "max 100000\n",
+        })  # fmt: skip
+        assert cpu_quota(tmp_path, "0::/jobs/run7/leaf\n") == 3.0
+        assert cpu_quota(tmp_path, "0::/jobs\n") == 4.0
+        assert cpu_quota(tmp_path, "0::/\n") is None
+        # a container sees its own cgroup as the root, where the host's path is missing
+        self._tree(tmp_path / "box", {"cpu.max": "250000 100000\n"})
+        assert cpu_quota(tmp_path / "box", "0::/docker/0a1b2c\n") == 2.5
+
+    def test_a_cgroup_v1_quota_is_read_from_the_cpu_controller_tree(self, tmp_path):
+        from torchrl_rave.recipe.config import cpu_quota
+
+        self._tree(tmp_path, {
+            "cpu,cpuacct/cpu.cfs_quota_us": "-1\n",
+            "cpu,cpuacct/cpu.cfs_period_us": "100000\n",
+            "cpu,cpuacct/slurm/job1/cpu.cfs_quota_us": "200000\n",
+            "cpu,cpuacct/slurm/job1/cpu.cfs_period_us": "100000\n",
+            "memory/slurm/job1/cpu.cfs_quota_us": "100000\n",  # not the cpu controller's
+            "memory/slurm/job1/cpu.cfs_period_us": "100000\n",
+        })  # fmt: skip
+        text = "5:memory:/slurm/job1\n3:cpu,cpuacct:/slurm/job1\n0::/\n"
+        assert cpu_quota(tmp_path, text) == 2.0
+        assert cpu_quota(tmp_path, "3:cpu,cpuacct:/\n") is None  # -1: no quota
+        assert cpu_quota(tmp_path, "5:memory:/slurm/job1\n") is None
+
+    def test_more_threads_than_the_cgroup_quota_are_warned_about(self, monkeypatch):
+        import warnings
+
+        from torchrl_rave.recipe import config
+        from torchrl_rave.recipe.config import BusyCoresWarning, apply_process_settings
+
+        threads = torch.get_num_threads()
+        cfg = make_cfg(*TINY, "threads=2", "keep_freed_memory=false")
+        monkeypatch.setattr(config, "busy_cores", lambda: (0.0, 2))
+        try:
+            monkeypatch.setattr(config, "cpu_quota", lambda: 1.5)
+            with pytest.warns(BusyCoresWarning, match=r"torch runs 2 threads in this process, and "
+                              r"its cgroup's CPU quota allows it 1\.5 cores' time.*threads=1 fits"):  # fmt: skip
+                apply_process_settings(cfg)
+            monkeypatch.setattr(config, "cpu_quota", lambda: 2.0)
+            with warnings.catch_warnings():
+                warnings.simplefilter("error", BusyCoresWarning)
+                apply_process_settings(cfg)  # two cores' time for two threads
+            cfg.threads = 3  # both limits at once: the tighter one is named
+            monkeypatch.setattr(config, "busy_cores", lambda: (1.6, 4))
+            with pytest.warns(BusyCoresWarning, match=r"keep 1\.6 of the 4 cores it may use busy "
+                              r"and its cgroup's CPU quota allows it 2 cores' time.*threads=2 fits"):  # fmt: skip
+                apply_process_settings(cfg)
         finally:
             torch.set_num_threads(threads)

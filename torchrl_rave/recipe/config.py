@@ -16,6 +16,7 @@ import re
 import time
 import warnings
 from dataclasses import dataclass
+from pathlib import Path
 
 import torch
 from omegaconf import DictConfig, OmegaConf
@@ -513,8 +514,9 @@ def check_ray_fits(cfg: DictConfig, total: dict, where: str) -> None:
 
 
 class BusyCoresWarning(UserWarning):
-    """Other processes keep so many of this process's cores busy that torch's threads
-    outnumber the free ones: each parallel kernel then waits for threads that are not
+    """Torch's threads outnumber the cores this process can run them on: other processes
+    keep so many of its cores busy, or its cgroup's CPU quota allows fewer cores' time
+    (:func:`cpu_quota`). Each parallel kernel then waits for threads that are not
     running, and a run can take several times as long (:func:`apply_process_settings`)."""
 
 
@@ -552,28 +554,80 @@ def busy_cores(window: float = 0.2) -> tuple[float, int] | None:
     return busy, len(cores)
 
 
+def cpu_quota(
+    root: str | os.PathLike = "/sys/fs/cgroup", cgroups: str | None = None
+) -> float | None:
+    """The CPU time this process's cgroups allow it, in cores: the tightest quota along
+    its cgroup's path and the path's parents, from cgroup v2's ``cpu.max`` (``"<quota>
+    <period>"``, ``max`` for none) or cgroup v1's ``cpu.cfs_quota_us`` and
+    ``cpu.cfs_period_us`` (``-1`` for none), under ``root``. ``cgroups`` is the text of
+    ``/proc/self/cgroup`` (read when ``None``). ``None`` where no quota is set or none
+    can be read (not Linux). A container started with ``--cpus`` has such a quota and
+    no smaller affinity, so torch's default thread count is the host's cores."""
+    root = Path(root)
+    try:
+        if cgroups is None:
+            cgroups = Path("/proc/self/cgroup").read_text()
+    except OSError:
+        return None
+    quotas = []
+    for line in cgroups.splitlines():
+        hierarchy, _, rest = line.partition(":")
+        controllers, _, path = rest.partition(":")
+        if hierarchy == "0" and controllers == "":  # v2: one tree, cpu.max
+            mounts, files = [root], ("cpu.max",)
+        elif "cpu" in controllers.split(","):  # v1: the cpu controller's own tree
+            mounts = [root / controllers, root / "cpu", root / "cpu,cpuacct"]
+            files = ("cpu.cfs_quota_us", "cpu.cfs_period_us")
+        else:
+            continue
+        for mount in dict.fromkeys(mounts):
+            if not mount.is_dir():
+                continue
+            parts = Path(path.strip()).parts[1:]  # in a container the path may not exist
+            for depth in range(len(parts), -1, -1):
+                try:
+                    text = " ".join((mount.joinpath(*parts[:depth], f)).read_text() for f in files)
+                except OSError:
+                    continue
+                quota, period = text.split()[:2]
+                if quota not in ("max", "-1") and float(period) > 0:
+                    quotas.append(float(quota) / float(period))
+            break
+    return min(quotas) if quotas else None
+
+
 def apply_process_settings(cfg: DictConfig) -> None:
     """The learner process's own settings: ``threads`` (torch's thread count) and
     ``keep_freed_memory`` (:func:`~torchrl_rave.recipe.keep_freed_memory`). Warns
-    (:class:`BusyCoresWarning`) when torch runs more threads than other processes leave
-    cores free (:func:`busy_cores`, measured only for more than one thread)."""
+    (:class:`BusyCoresWarning`) when torch runs more threads than there are cores to run
+    them: cores that other processes leave free (:func:`busy_cores`) or the cores' time
+    the process's cgroup allows (:func:`cpu_quota`), both read only for more than one
+    thread."""
     if cfg.threads:
         torch.set_num_threads(cfg.threads)
     threads = torch.get_num_threads()
+    fits, reasons = threads, []
     measured = busy_cores() if threads > 1 else None
     if measured is not None:
         busy, cores = measured
         free = max(1, round(cores - busy))
         if threads > free:
-            warnings.warn(
-                f"torch runs {threads} threads in this process, and other processes keep "
-                f"{busy:.1f} of the {cores} cores it may use busy: with more threads than "
-                "free cores each parallel kernel waits for threads that are not running, "
-                "and a run can take several times as long (docs: performance, threads); "
-                f"threads={free} fits the free cores",
-                BusyCoresWarning,
-                stacklevel=2,
-            )
+            fits = min(fits, free)
+            reasons.append(f"other processes keep {busy:.1f} of the {cores} cores it may use busy")
+    quota = cpu_quota() if threads > 1 else None
+    if quota is not None and threads > max(1, math.floor(quota)):
+        fits = min(fits, max(1, math.floor(quota)))
+        reasons.append(f"its cgroup's CPU quota allows it {quota:g} cores' time")
+    if reasons:
+        warnings.warn(
+            f"torch runs {threads} threads in this process, and {' and '.join(reasons)}: "
+            "with more threads than cores to run them each parallel kernel waits for "
+            "threads that are not running, and a run can take several times as long "
+            f"(docs: performance, threads); threads={fits} fits",
+            BusyCoresWarning,
+            stacklevel=2,
+        )
     if cfg.keep_freed_memory:
         memory.keep_freed_memory()
 

@@ -545,8 +545,9 @@ class RecipeConfig:
         (
             "torch threads of the learner process (null: torch's default, every core). Set "
             "it when other processes share the cores (two runs side by side, collector "
-            "workers): more threads than free cores make a run several times slower, and "
-            "a run warns when it starts so (BusyCoresWarning)"
+            "workers) or a container limits its CPU time (--cpus): more threads than free "
+            "cores make a run several times slower, and a run warns when it starts so "
+            "(BusyCoresWarning)"
         ),
         optional(POSITIVE_INT),
     )
