@@ -618,7 +618,8 @@ def apply_process_settings(cfg: DictConfig) -> None:
     quota = cpu_quota() if threads > 1 else None
     if quota is not None and threads > max(1, math.floor(quota)):
         fits = min(fits, max(1, math.floor(quota)))
-        reasons.append(f"its cgroup's CPU quota allows it {quota:g} cores' time")
+        share = "1 core's" if quota == 1 else f"{quota:g} cores'"
+        reasons.append(f"its cgroup's CPU quota allows it {share} time")
     if reasons:
         warnings.warn(
             f"torch runs {threads} threads in this process, and {' and '.join(reasons)}: "
