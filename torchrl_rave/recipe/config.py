@@ -554,9 +554,7 @@ def busy_cores(window: float = 0.2) -> tuple[float, int] | None:
     return busy, len(cores)
 
 
-def cpu_quota(
-    root: str | os.PathLike = "/sys/fs/cgroup", cgroups: str | None = None
-) -> float | None:
+def cpu_quota(root: str | Path = "/sys/fs/cgroup", cgroups: str | None = None) -> float | None:
     """The CPU time this process's cgroups allow it, in cores: the tightest quota along
     its cgroup's path and the path's parents, from cgroup v2's ``cpu.max`` (``"<quota>
     <period>"``, ``max`` for none) or cgroup v1's ``cpu.cfs_quota_us`` and
