@@ -408,14 +408,15 @@ def library_td3_case(S: int, device) -> tuple[Case, float]:
 def _paired(a: Case, b: Case, device, seconds: float) -> dict:
     """``a`` against ``b`` in paired rounds (the order alternating, so that the machine's
     drift cancels in each round's ratio): the rounds, each one's median milliseconds per
-    update, and the median of the rounds' time ratios ``a / b`` with its quartiles."""
+    update, and the median of the rounds' time ratios ``a / b`` with its quartiles. At
+    least four rounds run, however slow the machine, so that the quartiles exist."""
     for case in (a, b):  # warm-up: optimiser moments, allocator
         for _ in range(3):
             case.step()
     times: tuple[list[float], list[float]] = ([], [])
     order = [(0, a), (1, b)]
     end = time.perf_counter() + 2 * seconds
-    while time.perf_counter() < end:
+    while time.perf_counter() < end or len(times[0]) < 4:
         for i, case in order:
             sync(device)
             start = time.perf_counter()
