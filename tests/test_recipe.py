@@ -834,6 +834,8 @@ class TestBusyCores:
         # a container sees its own cgroup as the root, where the host's path is missing
         self._tree(tmp_path / "box", {"cpu.max": "250000 100000\n"})
         assert cpu_quota(tmp_path / "box", "0::/docker/0a1b2c\n") == 2.5
+        self._tree(tmp_path / "bad", {"cpu.max": "\n", "a/cpu.max": "lots 100000\n"})
+        assert cpu_quota(tmp_path / "bad", "0::/a\n") is None  # unreadable: no quota known
 
     def test_a_cgroup_v1_quota_is_read_from_the_cpu_controller_tree(self, tmp_path):
         from torchrl_rave.recipe.config import cpu_quota

@@ -586,11 +586,11 @@ def cpu_quota(root: str | Path = "/sys/fs/cgroup", cgroups: str | None = None) -
             for depth in range(len(parts), -1, -1):
                 try:
                     text = " ".join((mount.joinpath(*parts[:depth], f)).read_text() for f in files)
-                except OSError:
+                    quota, period = text.split()[:2]
+                    if quota not in ("max", "-1") and float(period) > 0:
+                        quotas.append(float(quota) / float(period))
+                except (OSError, ValueError):  # unreadable, or not numbers: no quota known
                     continue
-                quota, period = text.split()[:2]
-                if quota not in ("max", "-1") and float(period) > 0:
-                    quotas.append(float(quota) / float(period))
             break
     return min(quotas) if quotas else None
 
