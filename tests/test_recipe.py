@@ -824,12 +824,14 @@ class TestBusyCores:
 
         self._tree(tmp_path, {
             "cpu.max": "max 100000\n",  # the root: no quota
-            "jobs/cpu.max": "400000 100000\n",  # 4 cores
-            "jobs/run7/cpu.max": "150000 50000\n",  # 3 cores, the tightest
-            "jobs/run7/leaf/cpu.max": "max 100000\n",
+            "jobs/cpu.max": "200000 100000\n",  # 2 cores
+            "jobs/run7/cpu.max": "150000 50000\n",  # 3 cores
+            "jobs/run7/one/cpu.max": "100000 100000\n",  # 1 core
+            "jobs/run7/free/cpu.max": "max 100000\n",
         })  # fmt: skip
-        assert cpu_quota(tmp_path, "0::/jobs/run7/leaf\n") == 3.0
-        assert cpu_quota(tmp_path, "0::/jobs\n") == 4.0
+        assert cpu_quota(tmp_path, "0::/jobs/run7/one\n") == 1.0  # the leaf's own, tightest
+        assert cpu_quota(tmp_path, "0::/jobs/run7/free\n") == 2.0  # a parent's, not the nearest
+        assert cpu_quota(tmp_path, "0::/jobs\n") == 2.0
         assert cpu_quota(tmp_path, "0::/\n") is None
         # a container sees its own cgroup as the root, where the host's path is missing
         self._tree(tmp_path / "box", {"cpu.max": "250000 100000\n"})
@@ -871,10 +873,11 @@ class TestBusyCores:
             with warnings.catch_warnings():
                 warnings.simplefilter("error", BusyCoresWarning)
                 apply_process_settings(cfg)  # two cores' time for two threads
-            cfg.threads = 3  # both limits at once: the tighter one is named
-            monkeypatch.setattr(config, "busy_cores", lambda: (1.6, 4))
+            cfg.threads = 4  # both limits at once: both named, the tighter one fits
+            monkeypatch.setattr(config, "busy_cores", lambda: (1.6, 4))  # 2 free
+            monkeypatch.setattr(config, "cpu_quota", lambda: 3.0)
             with pytest.warns(BusyCoresWarning, match=r"keep 1\.6 of the 4 cores it may use busy "
-                              r"and its cgroup's CPU quota allows it 2 cores' time.*threads=2 fits"):  # fmt: skip
+                              r"and its cgroup's CPU quota allows it 3 cores' time.*threads=2 fits"):  # fmt: skip
                 apply_process_settings(cfg)
         finally:
             torch.set_num_threads(threads)

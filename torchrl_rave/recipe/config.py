@@ -575,7 +575,7 @@ def cpu_quota(root: str | Path = "/sys/fs/cgroup", cgroups: str | None = None) -
         if hierarchy == "0" and controllers == "":  # v2: one tree, cpu.max
             mounts, files = [root], ("cpu.max",)
         elif "cpu" in controllers.split(","):  # v1: the cpu controller's own tree
-            mounts = [root / controllers, root / "cpu", root / "cpu,cpuacct"]
+            mounts = [root / controllers, root / "cpu"]  # "cpu,cpuacct", or its "cpu" link
             files = ("cpu.cfs_quota_us", "cpu.cfs_period_us")
         else:
             continue
@@ -614,8 +614,9 @@ def apply_process_settings(cfg: DictConfig) -> None:
             fits = min(fits, free)
             reasons.append(f"other processes keep {busy:.1f} of the {cores} cores it may use busy")
     quota = cpu_quota() if threads > 1 else None
-    if quota is not None and threads > max(1, math.floor(quota)):
-        fits = min(fits, max(1, math.floor(quota)))
+    whole = None if quota is None else max(1, math.floor(quota))
+    if whole is not None and threads > whole:
+        fits = min(fits, whole)
         share = "1 core's" if quota == 1 else f"{quota:g} cores'"
         reasons.append(f"its cgroup's CPU quota allows it {share} time")
     if reasons:
