@@ -55,7 +55,9 @@ def write_cell(
 def test_interval95_by_hand():
     mean, half = interval95(np.array([1.0, 2.0, 3.0]))
     assert mean == 2.0
-    assert half == pytest.approx(4.303 * 1.0 / np.sqrt(3))  # t(0.975, 2) * s / sqrt(n)
+    # t(0.975, 2) * s / sqrt(n); at 2 degrees of freedom the quantile has the closed form
+    # (2p - 1) / sqrt(2 p (1 - p)), 4.3027 at p = 0.975
+    assert half == pytest.approx(0.95 / np.sqrt(2 * 0.975 * 0.025) * 1.0 / np.sqrt(3))
     assert np.isnan(interval95(np.array([5.0]))[1])
 
 
@@ -151,9 +153,12 @@ def test_difference95_by_hand():
     a, b = np.array([1.0, 4.0, 4.0, 7.0]), np.array([0.0, 2.0, 4.0])
     diff, half = difference95(a, b)
     # means 4 and 2; variances 6 and 4; se = sqrt(6 / 4 + 4 / 3); min(4, 3) - 1 = 2 dof
-    assert diff == 2.0 and half == pytest.approx(4.303 * np.sqrt(6 / 4 + 4 / 3))
+    t2 = 0.95 / np.sqrt(2 * 0.975 * 0.025)  # t(0.975, 2), closed form
+    assert diff == 2.0 and half == pytest.approx(t2 * np.sqrt(6 / 4 + 4 / 3))
     assert np.isnan(difference95(a, np.array([1.0]))[1])
-    assert t975(200) == t975(20) == 2.086
+    # one degree of freedom is Cauchy's tan(pi (p - 1/2)); many approach the normal's 1.96
+    assert t975(1) == pytest.approx(np.tan(np.pi * 0.475))
+    assert t975(200) == pytest.approx(1.9719, abs=1e-4) and 1.96 < t975(200) < t975(20)
     with pytest.raises(ValueError, match="degree of freedom"):
         t975(0)
 
