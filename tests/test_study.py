@@ -523,6 +523,33 @@ def test_every_committed_study_makes_valid_cells(name, tmp_path):
         assert cfg.collector.total_frames == loaded.frames
 
 
+@pytest.mark.parametrize(
+    "name", sorted(p.stem for p in (Path(study.__file__).parent / "study").glob("*.yaml"))
+)
+def test_committed_results_tables_are_what_the_report_writes_today(name, tmp_path, monkeypatch):
+    """Each study's committed tables (docs/figures/<study>.md, which its results page
+    includes) are exactly what ``study.py report`` writes today from the committed cells
+    under results/: a change to the report, to its statistics or to a cell that moves a
+    published number fails here until the pages are regenerated. The curves are left out
+    (drawing every study's takes minutes); the tables read every cell they plot. A study
+    still under way is left out too: its runner commits each cell as it finishes, before
+    the page is rebuilt from it."""
+    import study_report
+
+    recipes = Path(study.__file__).parent
+    loaded = study.load_study(recipes / "study" / f"{name}.yaml")
+    if missing := study.missing_cells(loaded, recipes.parent / "results", tmp_path / "runs"):
+        pytest.skip(f"{name} is under way: {len(missing)} cells to run")
+    monkeypatch.setattr(study_report, "study_figures", lambda *args, **kwargs: None)
+    study.main(["report", "--config", str(recipes / "study" / f"{name}.yaml"),
+                "--figures", str(tmp_path)])  # fmt: skip
+    committed = recipes.parent / "docs" / "figures" / f"{name}.md"
+    assert (tmp_path / f"{name}.md").read_text() == committed.read_text(), (
+        f"docs/figures/{name}.md is not what the report writes from results/ today; run "
+        f"python recipes/study.py report --config recipes/study/{name}.yaml"
+    )
+
+
 def test_group_runs_a_task_and_algorithms_seeds_as_one_cell_committed_per_seed(tmp_path):
     """``run --group``: DDPG's two seeds train in one process (seeds=[0,1]) and still give
     one result directory per seed, each cell.json naming its own seed and the group; run
