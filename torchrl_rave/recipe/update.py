@@ -15,6 +15,10 @@ A stop requested in the middle of a batch's updates (Ctrl-C, SIGTERM) ends them 
 current step: the updates not taken stay in ``counters["update_budget"]`` (and the
 pretraining steps not taken in the world-model trainers), so the run checkpoints within one
 update and a resumed run takes them before it collects again (:func:`batch_cut_short`).
+
+The order of one agent update (``agent_update``, ``critic_first_update``, ``total_loss``)
+is :mod:`torchrl_rave.trainers.agent_update`'s, which a seed group's update runs too; the
+names still import from here.
 """
 
 from __future__ import annotations
@@ -32,56 +36,22 @@ from torchrl_rave.objectives.compile import compile_loss
 from torchrl_rave.recipe.agent import critic_loss_key
 from torchrl_rave.recipe.config import learning_start
 from torchrl_rave.recipe.metrics import record_update
+from torchrl_rave.trainers.agent_update import agent_update, critic_first_update, total_loss
 
 __all__ = [
     "AgentLearner",
-    "agent_update",
-    "critic_first_update",
     "split_losses",
     "make_agent_step",
     "ppo_update",
-    "total_loss",
     "batch_cut_short",
     "update_on_batch",
 ]
 
 
-def total_loss(loss) -> Callable[[TensorDictBase], tuple[TensorDictBase, torch.Tensor]]:
-    """``batch -> (loss outputs, their sum)``: the part of an update that
-    :func:`~torchrl_rave.objectives.compile.compile_loss` hands to ``torch.compile``."""
-
-    def loss_and_total(batch: TensorDictBase):
-        out = loss(batch)
-        # Each loss sees the other networks detached (and targets carry no gradient), so
-        # one backward over the sum gives every network exactly its own gradient.
-        return out, sum(v for k, v in out.items() if k.startswith("loss_"))
-
-    return loss_and_total
-
-
-def agent_update(
-    loss, optimizers: dict, target_updater, batch: TensorDictBase, step_actor=True, loss_fn=None
-):
-    """One agent step: critic (and, with ``step_actor``, actor, SAC temperature and the
-    soft target update); returns the loss outputs. ``loss_fn`` replaces
-    ``total_loss(loss)`` (a compiled one, say)."""
-    out, total = (loss_fn or total_loss(loss))(batch)
-    for name in ("actor", "critic", "alpha"):
-        if name in optimizers:
-            optimizers[name].zero_grad()
-    total.backward()
-    optimizers["critic"].step()
-    if step_actor:
-        optimizers["actor"].step()
-        if "alpha" in optimizers:
-            optimizers["alpha"].step()
-        target_updater.step()
-    return out
-
-
 def split_losses(loss) -> tuple[Callable, Callable]:
     """The critics' and the actor's parts of ``loss``, each ``batch -> {name: output}``,
-    for :func:`critic_first_update`: ``EnsembleDDPGLoss.loss_value`` / ``loss_actor``,
+    for :func:`~torchrl_rave.trainers.agent_update.critic_first_update`:
+    ``EnsembleDDPGLoss.loss_value`` / ``loss_actor``,
     ``TD3Loss.value_loss`` / ``actor_loss``, ``SACLoss.qvalue_v2_loss`` / ``actor_loss``
     with the temperature's loss on the actor's draws (as ``SACLoss.forward`` computes it).
     Each part draws its random numbers in the order ``loss(batch)`` draws them."""
@@ -115,41 +85,13 @@ def split_losses(loss) -> tuple[Callable, Callable]:
     )
 
 
-def critic_first_update(
-    optimizers: dict, target_updater, batch: TensorDictBase, parts, step_actor=True
-) -> dict:
-    """One agent step with the critics stepped first (``optim.critic_first``): the critics'
-    loss, its backward and step; then, with ``step_actor``, the actor's (and SAC
-    temperature's) loss through the updated critics, its backward and steps, and the soft
-    target update, as CleanRL's scripts and TorchRL's sota DDPG and TD3 scripts order them.
-    ``parts``: :func:`split_losses` (compiled or not). Returns the loss outputs (no
-    ``loss_actor`` without ``step_actor``)."""
-    critic_part, actor_part = parts
-    out = critic_part(batch)
-    ((key, value),) = out.items()
-    optimizers["critic"].zero_grad()
-    value.backward()
-    optimizers["critic"].step()
-    out[key] = value.detach()
-    if step_actor:
-        actor_out = actor_part(batch)
-        for name in ("actor", "alpha"):
-            if name in optimizers:
-                optimizers[name].zero_grad()
-        sum(v for k, v in actor_out.items() if k.startswith("loss_")).backward()
-        optimizers["actor"].step()
-        if "alpha" in optimizers:
-            optimizers["alpha"].step()
-        target_updater.step()
-        out.update({k: v.detach() for k, v in actor_out.items()})
-    return out
-
-
 def make_agent_step(cfg: DictConfig, loss, optimizers: dict, target_updater):
     """The recipe's agent update on a batch, ``agent_step(batch, step_actor)``: one
-    backward pass over the summed losses (:func:`agent_update`), or with
+    backward pass over the summed losses
+    (:func:`~torchrl_rave.trainers.agent_update.agent_update`), or with
     ``optim.critic_first`` the critics stepped before the actor's loss
-    (:func:`critic_first_update`). With ``compile.enabled`` each loss forward goes through
+    (:func:`~torchrl_rave.trainers.agent_update.critic_first_update`). With
+    ``compile.enabled`` each loss forward goes through
     :func:`~torchrl_rave.objectives.compile.compile_loss` (``compile.mode``), compiled at
     the first call. (The world model's step is
     :class:`~torchrl_rave.trainers.WorldModelTrainer`'s, compiled alike.)"""

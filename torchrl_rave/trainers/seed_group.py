@@ -55,6 +55,7 @@ from __future__ import annotations
 
 import copy
 import functools
+import types
 from collections.abc import Callable, Sequence
 
 import torch
@@ -68,6 +69,7 @@ from torchrl_rave.objectives import functional as VF
 from torchrl_rave.objectives.ensemble_ddpg import EnsembleDDPGLoss
 from torchrl_rave.objectives.value_expansion import ValueExpansionEstimator, world_model_calls
 from torchrl_rave.objectives.world_model_loss import WorldModelEnsembleLoss
+from torchrl_rave.trainers.agent_update import agent_update, critic_first_update
 from torchrl_rave.trainers.seed_streams import SeedStreams, _randn_like
 
 __all__ = ["SeedGroup", "SeedStreams"]
@@ -154,16 +156,6 @@ def _stacked(modules: Sequence[torch.nn.Module], members: _Members) -> torch.nn.
     return stacked
 
 
-def _step(optimizers, loss: Tensor) -> None:
-    """``loss``'s backward pass and the steps of ``optimizers`` (one or several)."""
-    optimizers = [optimizers] if isinstance(optimizers, torch.optim.Optimizer) else list(optimizers)
-    for opt in optimizers:
-        opt.zero_grad()
-    loss.backward()
-    for opt in optimizers:
-        opt.step()
-
-
 def _gaussian_draw(streams: SeedStreams | None) -> Callable[[Tensor, Tensor, bool], Tensor]:
     """The world model's draw (``modules.world_model._draw``) for outputs with the seed
     leading."""
@@ -207,7 +199,7 @@ class SeedGroup:
         lr_alpha (float, optional): SAC's temperature learning rate (required for SAC).
         critic_first (bool, optional): step the critics before the actor's (and SAC
             temperature's) loss is computed, as
-            :func:`~torchrl_rave.recipe.update.critic_first_update` does for one learner.
+            :func:`~torchrl_rave.trainers.agent_update.critic_first_update` does for one learner.
             Defaults to ``False``: one backward pass over the summed losses.
 
     After construction every learner's parameters, target parameters and world-model
@@ -332,6 +324,9 @@ class SeedGroup:
         self.tau = 1.0 - (1.0 - float(tau))
         self.actor_optimizer = torch.optim.Adam(self.actor_leaves, lr=lr_actor, fused=True)
         self.critic_optimizer = torch.optim.Adam(self.critic_leaves, lr=lr_critic, fused=True)
+        # every seed's soft target update, one _foreach_lerp_ as ForeachSoftUpdate's
+        lerp = functools.partial(torch._foreach_lerp_, *self._lerp, self.tau)
+        self.target_updater = types.SimpleNamespace(step=torch.no_grad()(lerp))
         if self.sac:
             if lr_alpha is None:
                 raise ValueError("a SAC seed group needs lr_alpha")
@@ -537,15 +532,15 @@ class SeedGroup:
         )
         return action, log_prob
 
-    def _actor_losses(self, obs: Tensor, out: dict) -> tuple[list[Tensor], list]:
+    def _actor_losses(self, obs: Tensor, out: dict) -> dict[str, Tensor]:
         """Each seed's actor loss (SAC's: and its temperature's) through the current
-        critics, with the optimisers they step; their outputs go into ``out``."""
+        critics, by name, ``[S]`` each; their outputs go into ``out``."""
         if not self.sac:
             q_actor = self._q(self.critic, obs, self._policy(self.actor, obs), detach=True)
             # the K critics' mean (EnsembleDDPGLoss), the first critic's value (TD3Loss)
             loss_actor = (-(q_actor[:, 0] if self.td3 else q_actor.mean(1))).mean(-1)  # [S]
             out.update(loss_actor=loss_actor.detach(), state_action_value_actor=q_actor.detach())
-            return [loss_actor], [self.actor_optimizer]
+            return {"loss_actor": loss_actor}
         # SACLoss (v2): alpha log pi - min_k Q_k, and the temperature's loss
         alpha = self.log_alpha.detach().exp()  # [S]
         new_action, log_prob = self._sac_action(obs)
@@ -556,14 +551,15 @@ class SeedGroup:
         )
         out.update(loss_actor=loss_actor.detach(), loss_alpha=loss_alpha.detach(), alpha=alpha,
                    entropy=-log_prob.detach().mean(-1))  # fmt: skip
-        return [loss_actor, loss_alpha], [self.actor_optimizer, self.alpha_optimizer]
+        return {"loss_actor": loss_actor, "loss_alpha": loss_alpha}
 
     def update(self, batch: TensorDictBase, step_actor: bool = True) -> TensorDict:
         """One agent update of every seed on its own rows of ``batch`` (``[S, B]``):
         critics, then (with ``step_actor``) actor and soft target update, as
-        :func:`~torchrl_rave.recipe.update.agent_update` (or, with ``critic_first``,
-        :func:`~torchrl_rave.recipe.update.critic_first_update`) does for one learner. Returns
-        per-seed outputs (batch size ``[S]``): ``loss_value``, ``loss_actor``,
+        :func:`~torchrl_rave.trainers.agent_update.agent_update` (or, with ``critic_first``,
+        :func:`~torchrl_rave.trainers.agent_update.critic_first_update`) does for one learner,
+        through those same functions. Returns per-seed outputs (batch size ``[S]``):
+        ``loss_value``, ``loss_actor``,
         ``target_value`` ``[S, B]``, ``pred_value`` ``[S, K, B]`` and the estimator's
         diagnostics; ``state_action_value_actor`` ``[S, K, B]``, or, for SAC, ``loss_alpha``,
         ``alpha`` and ``entropy``. SAC steps its actor and temperature at every update
@@ -571,29 +567,32 @@ class SeedGroup:
         actor's loss is not computed and its entries are absent."""
         step_actor = step_actor or self.sac
         obs, action, nxt, reward, terminated = self._read(batch)
-        with torch.no_grad():
-            target, diagnostics = self._target(obs, action, nxt, reward, terminated)
-        current = self._q(self.critic, obs, action)  # [S, K, B]
-        loss_value = (current - target.unsqueeze(1)).pow(2).sum(1).mean(-1)  # [S]
-        out = {"loss_value": loss_value.detach(), "target_value": target,
-               "pred_value": current.detach(), **diagnostics}  # fmt: skip
-        if self.critic_first:
-            _step(self.critic_optimizer, loss_value.sum())
-            if not step_actor:  # as critic_first_update: no actor loss without its step
-                return TensorDict(out, batch_size=[self.num_seeds])
-        losses, optimizers = self._actor_losses(obs, out)
-        if self.critic_first:
-            _step(optimizers, sum(loss.sum() for loss in losses))
-        else:  # one backward pass over every loss
-            for opt in (self.critic_optimizer, *optimizers):
-                opt.zero_grad()
-            (loss_value.sum() + sum(loss.sum() for loss in losses)).backward()
-            self.critic_optimizer.step()
-            for opt in optimizers if step_actor else ():
-                opt.step()
-        if step_actor:
+        out = {}
+
+        def critic_part(_):
             with torch.no_grad():
-                torch._foreach_lerp_(self._lerp[0], self._lerp[1], self.tau)
+                target, diagnostics = self._target(obs, action, nxt, reward, terminated)
+            current = self._q(self.critic, obs, action)  # [S, K, B]
+            loss_value = (current - target.unsqueeze(1)).pow(2).sum(1).mean(-1)  # [S]
+            out.update(loss_value=loss_value.detach(), target_value=target,
+                       pred_value=current.detach(), **diagnostics)  # fmt: skip
+            return {"loss_value": loss_value.sum()}  # the seeds' sum: each its own gradient
+
+        def actor_part(_):
+            return {k: v.sum() for k, v in self._actor_losses(obs, out).items()}
+
+        if self.critic_first:  # without step_actor, no actor loss is computed
+            critic_first_update(
+                self.optimizers(), self.target_updater, batch, (critic_part, actor_part),
+                step_actor,
+            )  # fmt: skip
+        else:  # one backward pass over every loss
+
+            def both(_):
+                losses = {**critic_part(batch), **actor_part(batch)}
+                return None, sum(losses.values())
+
+            agent_update(None, self.optimizers(), self.target_updater, batch, step_actor, both)
         return TensorDict(out, batch_size=[self.num_seeds])
 
     def _bootstrap_indices(self, B: int, device) -> Tensor:
