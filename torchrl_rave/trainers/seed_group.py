@@ -69,7 +69,7 @@ from torchrl_rave.objectives import functional as VF
 from torchrl_rave.objectives.ensemble_ddpg import EnsembleDDPGLoss
 from torchrl_rave.objectives.value_expansion import ValueExpansionEstimator, world_model_calls
 from torchrl_rave.objectives.world_model_loss import WorldModelEnsembleLoss
-from torchrl_rave.trainers.agent_update import agent_update, critic_first_update
+from torchrl_rave.trainers.agent_update import agent_update, critic_first_update, total_loss
 from torchrl_rave.trainers.seed_streams import SeedStreams, _randn_like
 
 __all__ = ["SeedGroup", "SeedStreams"]
@@ -325,13 +325,16 @@ class SeedGroup:
         self.actor_optimizer = torch.optim.Adam(self.actor_leaves, lr=lr_actor, fused=True)
         self.critic_optimizer = torch.optim.Adam(self.critic_leaves, lr=lr_critic, fused=True)
         # every seed's soft target update, one _foreach_lerp_ as ForeachSoftUpdate's
-        lerp = functools.partial(torch._foreach_lerp_, *self._lerp, self.tau)
+        targets = [*self.target_actor.values(), *self.target_critic.values()]
+        sources = [t.detach() for t in ([] if self.sac else self.actor_leaves) + self.critic_leaves]
+        lerp = functools.partial(torch._foreach_lerp_, targets, sources, self.tau)
         self.target_updater = types.SimpleNamespace(step=torch.no_grad()(lerp))
         if self.sac:
             if lr_alpha is None:
                 raise ValueError("a SAC seed group needs lr_alpha")
             self.log_alpha = _fuse([x.log_alpha for x in losses], 0, True, self._members)
             self.alpha_optimizer = torch.optim.Adam([self.log_alpha], lr=lr_alpha, fused=True)
+        self._agent_optimizers = self.optimizers()  # built once, not at every update
 
     # ----------------------------------------------------------------- set-up
     def _estimator_setup(self, losses) -> None:
@@ -391,10 +394,6 @@ class SeedGroup:
         self.actor_leaves, self.critic_leaves = (
             list(self.actor.values()),
             list(self.critic.values()),
-        )
-        self._lerp = (
-            [*self.target_actor.values(), *self.target_critic.values()],
-            [t.detach() for t in ([] if self.sac else self.actor_leaves) + self.critic_leaves],
         )
 
     # ---------------------------------------------------------------- networks
@@ -559,8 +558,8 @@ class SeedGroup:
         :func:`~torchrl_rave.trainers.agent_update.agent_update` (or, with ``critic_first``,
         :func:`~torchrl_rave.trainers.agent_update.critic_first_update`) does for one learner,
         through those same functions. Returns per-seed outputs (batch size ``[S]``):
-        ``loss_value``, ``loss_actor``,
-        ``target_value`` ``[S, B]``, ``pred_value`` ``[S, K, B]`` and the estimator's
+        ``loss_value``, ``loss_actor``, ``target_value`` ``[S, B]``, ``pred_value``
+        ``[S, K, B]`` and the estimator's
         diagnostics; ``state_action_value_actor`` ``[S, K, B]``, or, for SAC, ``loss_alpha``,
         ``alpha`` and ``entropy``. SAC steps its actor and temperature at every update
         (``step_actor`` is ignored). With ``critic_first`` and without ``step_actor``, the
@@ -581,18 +580,13 @@ class SeedGroup:
         def actor_part(_):
             return {k: v.sum() for k, v in self._actor_losses(obs, out).items()}
 
+        optimizers, updater = self._agent_optimizers, self.target_updater
         if self.critic_first:  # without step_actor, no actor loss is computed
-            critic_first_update(
-                self.optimizers(), self.target_updater, batch, (critic_part, actor_part),
-                step_actor,
-            )  # fmt: skip
+            parts = (critic_part, actor_part)
+            critic_first_update(optimizers, updater, batch, parts, step_actor)
         else:  # one backward pass over every loss
-
-            def both(_):
-                losses = {**critic_part(batch), **actor_part(batch)}
-                return None, sum(losses.values())
-
-            agent_update(None, self.optimizers(), self.target_updater, batch, step_actor, both)
+            both = total_loss(lambda b: {**critic_part(b), **actor_part(b)})
+            agent_update(None, optimizers, updater, batch, step_actor, both)
         return TensorDict(out, batch_size=[self.num_seeds])
 
     def _bootstrap_indices(self, B: int, device) -> Tensor:
